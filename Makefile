@@ -1,0 +1,33 @@
+# The two quick-start commands (`make demo`, `make test`) work on a fresh clone:
+# each creates a local virtual environment, installs tpscore into it and runs.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+SOURCES := pyproject.toml CMakeLists.txt $(shell find cpp python -type f -not -name '*.pyc' 2>/dev/null)
+
+.PHONY: all install test demo bench clean
+
+all: install
+
+$(VENV)/bin/python:
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+
+# Reinstall whenever a source changes; the build folder makes it incremental.
+$(VENV)/.installed: $(VENV)/bin/python $(SOURCES)
+	$(PY) -m pip install --quiet ".[test]"
+	@touch $@
+
+install: $(VENV)/.installed
+
+test: install
+	$(PY) -m pytest tests -q
+
+demo: install
+	$(VENV)/bin/tpscore demo --out demo-output
+
+bench: install
+	$(PY) -m pytest benchmarks -q -p no:cacheprovider -o python_files="bench_*.py" --benchmark-columns=min,median,mean,rounds --benchmark-sort=name
+
+clean:
+	rm -rf build $(VENV) demo-output .pytest_cache .benchmarks

@@ -1,0 +1,23 @@
+// The private extension tpscore._core. Each kernel family registers its own
+// functions; validation and conversion happen in the Python layer beforehand.
+#include <nanobind/nanobind.h>
+
+#include "tpscore/parallel.hpp"
+
+namespace nb = nanobind;
+
+void bind_rbf(nb::module_& m);
+void bind_csrbf(nb::module_& m);
+void bind_spatial(nb::module_& m);
+void bind_mesh_ops(nb::module_& m);
+
+NB_MODULE(_core, m) {
+    m.doc() = "tpscore's compiled kernels (private: use the tpscore package instead)";
+    m.def("num_threads", &tpscore::num_threads, "Threads a kernel may use.");
+    m.def("set_num_threads", &tpscore::set_num_threads, nb::arg("n"),
+          "Set the kernel thread count; n <= 0 restores the default.");
+    bind_rbf(m);
+    bind_csrbf(m);
+    bind_spatial(m);
+    bind_mesh_ops(m);
+}

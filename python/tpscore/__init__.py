@@ -1,0 +1,15 @@
+"""tpscore: thin-plate splines and radial basis functions for 3D faces.
+
+The public API lives in the submodules and is re-exported here; the compiled
+kernels in ``tpscore._core`` are private.
+"""
+from __future__ import annotations
+
+from ._core import num_threads, set_num_threads
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "num_threads",
+    "set_num_threads",
+]
