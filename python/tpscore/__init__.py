@@ -6,10 +6,12 @@ kernels in ``tpscore._core`` are private.
 from __future__ import annotations
 
 from ._core import num_threads, set_num_threads
+from .spatial import KDTree
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "KDTree",
     "num_threads",
     "set_num_threads",
 ]
