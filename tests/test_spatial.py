@@ -319,3 +319,329 @@ def test_properties_repr_and_immutability():
 def test_bad_input_raises_value_error_naming_the_problem(call, match):
     with pytest.raises(ValueError, match=match):
         call()
+
+
+# ------------------------------------------------------------------ mesh surfaces
+
+MESH_KINDS = ["soup", "grid", "sphere", "with_degenerate"]
+
+
+def grid_mesh(rows: int, cols: int, rng: np.random.Generator | None = None, spacing=1.0):
+    """A height-field grid mesh like tpscore's faces: two triangles per quad."""
+    y, x = np.mgrid[0:rows, 0:cols].astype(float) * spacing
+    z = np.zeros_like(x) if rng is None else rng.normal(scale=0.3, size=x.shape)
+    vertices = np.stack([x, y, z], axis=-1).reshape(-1, 3)
+    index = np.arange(rows * cols).reshape(rows, cols)
+    a, b = index[:-1, :-1].ravel(), index[:-1, 1:].ravel()
+    c, d = index[1:, :-1].ravel(), index[1:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    return vertices, faces
+
+
+def make_mesh(kind: str, rng: np.random.Generator):
+    if kind == "soup":
+        vertices = rng.normal(size=(60, 3)) * 10
+        return vertices, rng.integers(0, 60, size=(120, 3))  # repeated indices: zero area
+    if kind == "grid":
+        return grid_mesh(8, 9, rng)
+    if kind == "sphere":
+        directions = rng.normal(size=(80, 3))
+        vertices = 20 * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+        from scipy.spatial import ConvexHull
+
+        return vertices, ConvexHull(vertices).simplices
+    if kind == "with_degenerate":
+        vertices, faces = grid_mesh(5, 5, rng)
+        extra = np.array([[0, 0, 0], [1, 1, 1], [2, 2, 2], [5, 5, 5], [5, 5, 5], [5, 5, 5]],
+                         dtype=float) + [1.3, 0.2, 0.4]
+        n = len(vertices)
+        degenerate = np.array([[n, n + 1, n + 2], [n + 3, n + 4, n + 5], [n, n, n + 1]])
+        return np.concatenate([vertices, extra]), np.concatenate([faces, degenerate])
+    raise AssertionError(kind)
+
+
+def surface_queries(vertices, faces, m, rng):
+    """Random points near the mesh, its vertices, edge points, face points, far points."""
+    lo, hi = vertices.min(0) - 2, vertices.max(0) + 2
+    face = faces[rng.integers(0, len(faces), m)]
+    weights = rng.dirichlet([1, 1, 1], size=m)
+    s = rng.uniform(size=(m, 1))
+    return np.concatenate([
+        rng.uniform(lo, hi, size=(m, 3)),
+        vertices[rng.integers(0, len(vertices), m)],
+        s * vertices[face[:, 0]] + (1 - s) * vertices[face[:, 1]],
+        np.einsum("mj,mjk->mk", weights, vertices[face]),
+        rng.normal(size=(4, 3)) * 1e4,
+    ])
+
+
+def assert_closest_points_match(vertices, faces, queries, got, want):
+    want_points, want_triangles, want_bary, want_distances = want
+    scale = np.abs(vertices).max() + 1.0
+    # Core and reference evaluate the same region formulas in the same order; only a
+    # differently rounded region choice near a region boundary (where both candidate
+    # formulas agree to rounding) can separate them: 1e-9 of the coordinate scale.
+    tol = 1e-9 * scale
+    np.testing.assert_allclose(got.distances, want_distances, rtol=0, atol=tol)
+    corners = vertices[faces[got.triangles]]
+    np.testing.assert_allclose(got.points, np.einsum("mj,mjk->mk", got.barycentric, corners),
+                               atol=tol)
+    np.testing.assert_allclose(got.barycentric.sum(axis=1), 1.0, atol=1e-9)
+    assert np.all(got.barycentric >= -1e-9)
+    np.testing.assert_allclose(np.linalg.norm(queries - got.points, axis=1), got.distances,
+                               atol=tol)
+    same = got.triangles == want_triangles
+    # Where the triangle differs, it must be a tie: same distance, different triangle.
+    assert same.mean() > 0.5
+    np.testing.assert_allclose(got.points[same], want_points[same], atol=tol)
+    np.testing.assert_allclose(got.barycentric[same], want_bary[same], atol=1e-6)
+    assert np.isfinite(got.points).all() and np.isfinite(got.barycentric).all()
+
+
+@settings(max_examples=40, deadline=None)
+@given(kind=st.sampled_from(MESH_KINDS), seed=st.integers(0, 2**32 - 1))
+def test_closest_point_matches_brute_force(kind, seed):
+    rng = np.random.default_rng(seed)
+    vertices, faces = make_mesh(kind, rng)
+    queries = surface_queries(vertices, faces, 40, rng)
+    got = tpscore.MeshSurface(vertices, faces).closest_point(queries)
+    want = ref.closest_point_on_mesh(vertices, faces.astype(np.int64), queries)
+    assert_closest_points_match(vertices, faces, queries, got, want)
+
+
+def test_closest_point_on_the_surface_is_the_point_itself():
+    rng = np.random.default_rng(11)
+    vertices, faces = grid_mesh(10, 10, rng)
+    face = faces[rng.integers(0, len(faces), 300)]
+    weights = rng.dirichlet([1, 1, 1], size=300)
+    on_surface = np.einsum("mj,mjk->mk", weights, vertices[face])
+    result = tpscore.MeshSurface(vertices, faces).closest_point(on_surface)
+    # A point on a triangle is its own closest point, up to the rounding of its
+    # construction (a few ulp of coordinates below 10).
+    assert np.all(result.distances < 1e-12)
+    np.testing.assert_allclose(result.points, on_surface, atol=1e-12)
+
+
+def test_closest_point_analytic_cases_and_tie_breaking():
+    # Two triangles sharing the edge (1,0,0)-(0,1,0) in the plane z = 0.
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], dtype=float)
+    faces = np.array([[0, 1, 2], [1, 3, 2]])
+    surface = tpscore.MeshSurface(vertices, faces)
+    queries = np.array([
+        [0.25, 0.25, 2.0],   # above the first face
+        [-1.0, -1.0, 0.0],   # beyond corner 0
+        [0.5, 0.5, 1.0],     # above the shared edge: a tie, the smaller index wins
+        [1.0, 0.0, 0.0],     # on a shared vertex
+        [2.0, 0.5, 0.0],     # beside edge 1-3
+    ])
+    result = surface.closest_point(queries)
+    np.testing.assert_allclose(result.points, [[0.25, 0.25, 0], [0, 0, 0], [0.5, 0.5, 0],
+                                               [1, 0, 0], [1, 0.5, 0]], atol=1e-15)
+    np.testing.assert_allclose(result.distances, [2.0, np.sqrt(2), 1.0, 0.0, 1.0], atol=1e-15)
+    assert result.triangles.tolist() == [0, 0, 0, 0, 1]
+    np.testing.assert_allclose(result.barycentric[0], [0.5, 0.25, 0.25], atol=1e-15)
+    np.testing.assert_allclose(result.barycentric[4], [0.5, 0.5, 0.0], atol=1e-15)
+
+
+def test_degenerate_triangles_give_finite_results():
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 3, 3]], dtype=float)
+    faces = np.array([[0, 1, 2], [3, 3, 3], [0, 0, 2]])  # collinear, a point, an edge
+    queries = np.array([[0.5, 1, 0], [3, 3, 4], [-1, 0, 0], [1.5, 0, -2]])
+    result = tpscore.MeshSurface(vertices, faces).closest_point(queries)
+    assert np.isfinite(result.points).all() and np.isfinite(result.barycentric).all()
+    np.testing.assert_allclose(result.points, [[0.5, 0, 0], [3, 3, 3], [0, 0, 0], [1.5, 0, 0]])
+    np.testing.assert_allclose(result.distances, [1, 1, 1, 2])
+    want = ref.closest_point_on_mesh(vertices, faces, queries)
+    assert_closest_points_match(vertices, faces, queries, result, want)
+    # Rays never hit a zero-area triangle, and never produce NaN hits.
+    hits = tpscore.MeshSurface(vertices, faces).intersect_rays(
+        [[0.5, 0, 1]], [[0, 0, -1]], both_directions=True)
+    assert not hits.hit[0] and np.isnan(hits.distances[0]) and hits.triangles[0] == -1
+
+
+def test_closest_point_on_mesh_function_and_thread_independence():
+    rng = np.random.default_rng(2)
+    vertices, faces = grid_mesh(40, 40, rng)
+    queries = rng.uniform(-3, 42, size=(5000, 3))
+    surface = tpscore.MeshSurface(vertices, faces)
+    tpscore.set_num_threads(2)
+    try:
+        serial = surface.closest_point(queries, workers=1)
+        parallel = surface.closest_point(queries, workers=2)
+        origins = queries
+        directions = rng.normal(size=queries.shape)
+        rays_serial = surface.intersect_rays(origins, directions, both_directions=True, workers=1)
+        rays_parallel = surface.intersect_rays(origins, directions, both_directions=True)
+    finally:
+        tpscore.set_num_threads(0)
+    for a, b in zip(serial, parallel):
+        assert np.array_equal(a, b)
+    for a, b in zip(rays_serial, rays_parallel):
+        assert np.array_equal(a, b, equal_nan=True)
+    assert rays_serial.hit.sum() > 1000
+    once = tpscore.closest_point_on_mesh(vertices, faces, queries[:100])
+    assert np.array_equal(once.points, serial.points[:100])
+
+
+def check_rays(vertices, faces, origins, directions, max_distance, both):
+    got = tpscore.MeshSurface(vertices, faces).intersect_rays(
+        origins, directions, max_distance=max_distance, both_directions=both)
+    # Normalised exactly as MeshSurface does, so both see bit-identical directions.
+    unit = directions / np.sqrt(np.einsum("ij,ij->i", directions, directions))[:, None]
+    want_hit, want_t, want_points, want_triangles, want_bary = ref.intersect_rays(
+        vertices, faces.astype(np.int64), origins, unit, max_distance, both)
+    # Same Moller-Trumbore arithmetic in the same order: random rays land on the same
+    # side of every triangle edge and limit in both.
+    assert np.array_equal(got.hit, want_hit)
+    missed = ~got.hit
+    assert np.isnan(got.distances[missed]).all() and np.isnan(got.points[missed]).all()
+    assert np.isnan(got.barycentric[missed]).all() and np.all(got.triangles[missed] == -1)
+    h = got.hit
+    np.testing.assert_allclose(got.distances[h], want_t[h], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(got.points[h], want_points[h], rtol=1e-12, atol=1e-12)
+    # The hit point lies on the ray, at the reported signed distance.
+    np.testing.assert_allclose(got.points[h], origins[h] + got.distances[h, None] * unit[h],
+                               atol=1e-9)
+    # A different triangle is only allowed as a tie (origins on the surface, rays through
+    # shared edges): the same t (checked above), and the hit lies on the reported triangle.
+    corners = vertices[faces[got.triangles[h]]]
+    np.testing.assert_allclose(got.points[h], np.einsum("mj,mjk->mk", got.barycentric[h], corners),
+                               atol=1e-9)
+    assert np.all(got.barycentric[h] >= -1e-12)
+    same = got.triangles[h] == want_triangles[h]
+    np.testing.assert_allclose(got.barycentric[h][same], want_bary[h][same], atol=1e-12)
+    if both:
+        assert np.all(np.abs(got.distances[h]) <= max_distance)
+    else:
+        assert np.all((got.distances[h] >= 0) & (got.distances[h] <= max_distance))
+    return got
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    kind=st.sampled_from(MESH_KINDS),
+    both=st.booleans(),
+    max_distance=st.sampled_from([np.inf, 5.0, 0.5]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_rays_match_brute_force(kind, both, max_distance, seed):
+    rng = np.random.default_rng(seed)
+    vertices, faces = make_mesh(kind, rng)
+    origins = surface_queries(vertices, faces, 30, rng)
+    directions = rng.normal(size=origins.shape)
+    check_rays(vertices, faces, origins, directions, max_distance, both)
+
+
+def test_rays_edges_vertices_grazing_and_both_directions():
+    # Integer grid in z = 0: every test below is exact in floating point.
+    vertices, faces = grid_mesh(4, 4)
+    surface = tpscore.MeshSurface(vertices, faces)
+    origins = np.array([
+        [1.0, 1.0, 5.0],   # straight down onto an interior vertex
+        [1.5, 1.0, 5.0],   # onto an interior edge
+        [3.0, 1.5, 5.0],   # onto the mesh's outer boundary edge
+        [3.5, 1.5, 5.0],   # just beside the mesh: a miss
+        [-1.0, 1.5, 0.0],  # grazing: in the plane of the mesh, never a hit
+        [1.2, 1.7, -2.0],  # from below, looking down: the hit is behind
+    ])
+    directions = np.array([[0, 0, -2], [0, 0, -1], [0, 0, -1], [0, 0, -1], [1, 0, 0], [0, 0, -1]],
+                          dtype=float)
+    one_way = surface.intersect_rays(origins, directions)
+    assert one_way.hit.tolist() == [True, True, True, False, False, False]
+    np.testing.assert_array_equal(one_way.distances[:3], [5.0, 5.0, 5.0])
+    np.testing.assert_array_equal(one_way.points[:3], [[1, 1, 0], [1.5, 1, 0], [3, 1.5, 0]])
+    both = surface.intersect_rays(origins, directions, both_directions=True)
+    assert both.hit.tolist() == [True, True, True, False, False, True]
+    assert both.distances[5] == -2.0
+    np.testing.assert_array_equal(both.points[5], [1.2, 1.7, 0.0])
+    # Every triangle touching the hit vertex is at t = 5: the smallest index wins.
+    touching = np.flatnonzero((faces == 5).any(axis=1))
+    assert one_way.triangles[0] == touching.min()
+    limited = surface.intersect_rays(origins, directions, max_distance=2.0, both_directions=True)
+    assert limited.hit.tolist() == [False] * 5 + [True]  # |t| = 2 counts
+    limited = surface.intersect_rays(origins, directions, max_distance=1.999, both_directions=True)
+    assert not limited.hit.any()
+
+
+def test_both_directions_takes_the_nearer_side():
+    # Two parallel sheets, z = 0 and z = 3; the origin sits at z = 1.
+    lower, faces = grid_mesh(3, 3)
+    upper = lower + [0, 0, 3]
+    vertices = np.concatenate([lower, upper])
+    faces = np.concatenate([faces, faces + len(lower)])
+    surface = tpscore.MeshSurface(vertices, faces)
+    one_way = surface.intersect_rays([[0.5, 0.5, 1.0]], [[0, 0, 1.0]])
+    both = surface.intersect_rays([[0.5, 0.5, 1.0]], [[0, 0, 1.0]], both_directions=True)
+    assert one_way.distances.tolist() == [2.0] and one_way.points[0, 2] == 3.0
+    assert both.distances.tolist() == [-1.0] and both.points[0, 2] == 0.0
+
+
+def test_surface_accepts_array_likes_and_returns_empty_results():
+    vertices, faces = grid_mesh(3, 3)
+    surface = tpscore.MeshSurface(vertices.astype(np.float32).tolist(), faces.astype(np.int32))
+    assert surface.faces.dtype == np.int64 and surface.vertices.dtype == np.float64
+    assert "triangles=8" in repr(surface)
+    queries = np.asfortranarray(np.array([[0.5, 0.5, 1.0], [1.5, 0.2, -1.0]]))
+    result = surface.closest_point(queries)
+    np.testing.assert_allclose(result.distances, [1.0, 1.0])
+    empty = surface.closest_point(np.zeros((0, 3)))
+    assert empty.points.shape == (0, 3) and empty.triangles.shape == (0,)
+    assert empty.barycentric.shape == (0, 3) and empty.distances.shape == (0,)
+    assert empty.triangles.dtype == np.int64
+    rays = surface.intersect_rays(np.zeros((0, 3)), np.zeros((0, 3)))
+    assert rays.hit.shape == (0,) and rays.hit.dtype == bool and rays.points.shape == (0, 3)
+    assert rays.distances.shape == (0,) and rays.barycentric.shape == (0, 3)
+
+
+def test_two_python_threads_query_one_surface():
+    rng = np.random.default_rng(4)
+    vertices, faces = grid_mesh(60, 60, rng)
+    queries = rng.uniform(0, 60, size=(20000, 3))
+    surface = tpscore.MeshSurface(vertices, faces)
+    expected = surface.closest_point(queries, workers=1)
+    results = [None, None]
+    barrier = threading.Barrier(2)
+
+    def work(slot):
+        barrier.wait()
+        results[slot] = surface.closest_point(queries)
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for result in results:
+        for a, b in zip(result, expected):
+            assert np.array_equal(a, b)
+
+
+_V, _F = grid_mesh(3, 3)
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda: tpscore.MeshSurface(_V, _F + 100), r"faces refers to vertex indices outside"),
+        (lambda: tpscore.MeshSurface(_V, -_F - 1), r"faces refers to vertex indices outside"),
+        (lambda: tpscore.MeshSurface(_V, _F[:, :2]), r"faces must have shape \(m, 3\)"),
+        (lambda: tpscore.MeshSurface(_V, _F + 0.5), "faces must hold integer"),
+        (lambda: tpscore.MeshSurface(_V, np.zeros((0, 3), int)), "faces is empty"),
+        (lambda: tpscore.MeshSurface(np.zeros((0, 3)), _F), "vertices is empty"),
+        (lambda: tpscore.MeshSurface(np.full((9, 3), np.nan), _F), "vertices contains NaN"),
+        (lambda: tpscore.MeshSurface(_V, _F).closest_point([[0, 0]]), r"points must have shape"),
+        (lambda: tpscore.MeshSurface(_V, _F).closest_point([[0, np.nan, 0]]), "points contains NaN"),
+        (lambda: tpscore.MeshSurface(_V, _F).intersect_rays([[0, 0, 1]], [[0, 0, 0]]),
+         "directions has zero length at row 0"),
+        (lambda: tpscore.MeshSurface(_V, _F).intersect_rays([[0, 0, 1]], [[0, 0, 1], [0, 0, 1]]),
+         "directions must have one row per origin"),
+        (lambda: tpscore.MeshSurface(_V, _F).intersect_rays([[0, 0, 1]], [[0, 0, 1]], max_distance=-1),
+         "max_distance must be >= 0"),
+        (lambda: tpscore.MeshSurface(_V, _F).intersect_rays([[0, 0, np.inf]], [[0, 0, 1]]),
+         "origins contains NaN or infinite"),
+        (lambda: tpscore.closest_point_on_mesh(_V, _F, [[0, 0, 0]], workers=-2), "workers must be -1"),
+    ],
+)
+def test_bad_surface_input_raises_value_error_naming_the_problem(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()

@@ -10,6 +10,7 @@
 #include <memory>
 #include <vector>
 
+#include "tpscore/closest_point.hpp"
 #include "tpscore/kdtree.hpp"
 
 namespace nb = nanobind;
@@ -18,11 +19,16 @@ using namespace nb::literals;
 namespace {
 
 using InPoints = nb::ndarray<const double, nb::shape<-1, 3>, nb::c_contig, nb::device::cpu>;
+using InFaces = nb::ndarray<const std::int64_t, nb::shape<-1, 3>, nb::c_contig, nb::device::cpu>;
 
 template <class T>
 using OutArray = nb::ndarray<nb::numpy, T>;
 
 Eigen::Map<const tpscore::Points> as_eigen(const InPoints& a) {
+    return {a.data(), static_cast<Eigen::Index>(a.shape(0)), 3};
+}
+
+Eigen::Map<const tpscore::Faces> as_eigen(const InFaces& a) {
     return {a.data(), static_cast<Eigen::Index>(a.shape(0)), 3};
 }
 
@@ -87,4 +93,61 @@ void bind_spatial(nb::module_& m) {
             },
             "queries"_a, "radius"_a, "sort"_a, "workers"_a,
             "(offsets (m + 1,), indices, distances) in CSR form.");
+
+    using tpscore::MeshSurface;
+    nb::class_<MeshSurface>(m, "MeshSurface",
+                            "Triangle mesh with a BVH for closest-point and ray queries "
+                            "(use tpscore.MeshSurface).")
+        .def(
+            "__init__",
+            [](MeshSurface* self, const InPoints& vertices, const InFaces& faces, int leaf_size) {
+                nb::gil_scoped_release release;
+                new (self) MeshSurface(as_eigen(vertices), as_eigen(faces), leaf_size);
+            },
+            "vertices"_a, "faces"_a, "leaf_size"_a = 4)
+        .def_prop_ro("num_triangles", &MeshSurface::num_triangles)
+        .def(
+            "closest_point",
+            [](const MeshSurface& mesh, const InPoints& queries, int workers) {
+                const std::size_t m = queries.shape(0);
+                std::unique_ptr<double[]> points(new double[3 * m]);
+                std::unique_ptr<std::int64_t[]> triangles(new std::int64_t[m]);
+                std::unique_ptr<double[]> barycentric(new double[3 * m]);
+                std::unique_ptr<double[]> distances(new double[m]);
+                {
+                    nb::gil_scoped_release release;
+                    mesh.closest_point(as_eigen(queries), points.get(), triangles.get(),
+                                       barycentric.get(), distances.get(), workers);
+                }
+                return nb::make_tuple(to_numpy(std::move(points), {m, 3}),
+                                      to_numpy(std::move(triangles), {m}),
+                                      to_numpy(std::move(barycentric), {m, 3}),
+                                      to_numpy(std::move(distances), {m}));
+            },
+            "queries"_a, "workers"_a, "(points (m, 3), triangles (m,), barycentric (m, 3), distances (m,)).")
+        .def(
+            "intersect_rays",
+            [](const MeshSurface& mesh, const InPoints& origins, const InPoints& directions,
+               double max_distance, bool both_directions, int workers) {
+                const std::size_t m = origins.shape(0);
+                if (directions.shape(0) != m)
+                    throw nb::value_error("origins and directions differ in length");
+                std::unique_ptr<bool[]> hit(new bool[m]);
+                std::unique_ptr<double[]> t(new double[m]);
+                std::unique_ptr<double[]> points(new double[3 * m]);
+                std::unique_ptr<std::int64_t[]> triangles(new std::int64_t[m]);
+                std::unique_ptr<double[]> barycentric(new double[3 * m]);
+                {
+                    nb::gil_scoped_release release;
+                    mesh.intersect_rays(as_eigen(origins), as_eigen(directions), max_distance,
+                                        both_directions, hit.get(), t.get(), points.get(),
+                                        triangles.get(), barycentric.get(), workers);
+                }
+                return nb::make_tuple(to_numpy(std::move(hit), {m}), to_numpy(std::move(t), {m}),
+                                      to_numpy(std::move(points), {m, 3}),
+                                      to_numpy(std::move(triangles), {m}),
+                                      to_numpy(std::move(barycentric), {m, 3}));
+            },
+            "origins"_a, "directions"_a, "max_distance"_a, "both_directions"_a, "workers"_a,
+            "(hit, t, points, triangles, barycentric); misses: False, NaN, -1.");
 }

@@ -1,1 +1,444 @@
-// placeholder
+#include "tpscore/closest_point.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <numeric>
+
+#include "tpscore/kdtree.hpp"  // parallel_rows
+
+namespace tpscore {
+
+namespace {
+
+constexpr double kInf = std::numeric_limits<double>::infinity();
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+// A closest-point or ray query costs a few microseconds: 64 rows pay for a thread.
+constexpr std::size_t kRowChunk = 64;
+
+// A triangle whose corner angle at a has sin^2 below this is treated as its edges: the
+// face formula divides by |ab x ac|^2, which rounding dominates for such slivers, while
+// the edges are then within 1e-10 |ab| of the whole triangle.
+constexpr double kDegenerateSin2 = 1e-20;
+
+// A ray is parallel to a triangle when |d . (e1 x e2)| <= this * |d| |e1| |e2|.
+constexpr double kParallelSin = 1e-12;
+
+// Traversal stacks: median splits keep the BVH depth below 32 for any int32 count.
+constexpr int kStackSize = 128;
+
+inline double dot(const double* a, const double* b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+
+inline void sub(const double* a, const double* b, double* out) {
+    out[0] = a[0] - b[0];
+    out[1] = a[1] - b[1];
+    out[2] = a[2] - b[2];
+}
+
+inline void cross(const double* a, const double* b, double* out) {
+    out[0] = a[1] * b[2] - a[2] * b[1];
+    out[1] = a[2] * b[0] - a[0] * b[2];
+    out[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+inline double squared_distance(const double* a, const double* b) {
+    double d[3];
+    sub(a, b, d);
+    return dot(d, d);
+}
+
+// Fills `result` with the corner, edge point or face point given by weights (wa, wb, wc)
+// and `point`, and its squared distance to p.
+inline void set_result(TrianglePoint& result, const double* p, const double* point, double wa,
+                       double wb, double wc) {
+    for (int i = 0; i < 3; ++i) result.point[i] = point[i];
+    result.barycentric[0] = wa;
+    result.barycentric[1] = wb;
+    result.barycentric[2] = wc;
+    result.squared_distance = squared_distance(p, point);
+}
+
+// Closest point of the segment p0 + s (p1 - p0), s in [0, 1]; returns s.
+inline double closest_on_segment(const double* p, const double* p0, const double* p1, double* point) {
+    double e[3], rel[3];
+    sub(p1, p0, e);
+    sub(p, p0, rel);
+    const double e2 = dot(e, e);
+    double s = e2 > 0.0 ? dot(rel, e) / e2 : 0.0;
+    s = std::min(1.0, std::max(0.0, s));
+    for (int i = 0; i < 3; ++i) point[i] = p0[i] + s * e[i];
+    return s;
+}
+
+// A degenerate triangle is the union of its edges: the closest of the three, first wins.
+TrianglePoint closest_on_edges(const double* p, const double* a, const double* b, const double* c) {
+    TrianglePoint best;
+    double point[3];
+    double s = closest_on_segment(p, a, b, point);
+    set_result(best, p, point, 1.0 - s, s, 0.0);
+    TrianglePoint other;
+    s = closest_on_segment(p, b, c, point);
+    set_result(other, p, point, 0.0, 1.0 - s, s);
+    if (other.squared_distance < best.squared_distance) best = other;
+    s = closest_on_segment(p, c, a, point);
+    set_result(other, p, point, s, 0.0, 1.0 - s);
+    if (other.squared_distance < best.squared_distance) best = other;
+    return best;
+}
+
+// Squared distance from q to an axis-aligned box (0 inside).
+inline double box_distance(const MeshSurface::Node& node, const double* q) {
+    double d2 = 0.0;
+    for (int a = 0; a < 3; ++a) {
+        const double d = std::max(0.0, std::max(node.lo[a] - q[a], q[a] - node.hi[a]));
+        d2 += d * d;
+    }
+    return d2;
+}
+
+// The ray's parameter interval inside the box, clipped to [t_min, t_max]; false when empty.
+inline bool box_interval(const MeshSurface::Node& node, const double* o, const double* d,
+                         const double* inv, double t_min, double t_max, double& t_enter,
+                         double& t_exit) {
+    for (int a = 0; a < 3; ++a) {
+        if (d[a] == 0.0) {
+            // Parallel to this slab: inside it for every t, or never.
+            if (o[a] < node.lo[a] || o[a] > node.hi[a]) return false;
+            continue;
+        }
+        double t0 = (node.lo[a] - o[a]) * inv[a];
+        double t1 = (node.hi[a] - o[a]) * inv[a];
+        if (t0 > t1) std::swap(t0, t1);
+        t_min = std::max(t_min, t0);
+        t_max = std::min(t_max, t1);
+        if (t_min > t_max) return false;
+    }
+    t_enter = t_min;
+    t_exit = t_max;
+    return true;
+}
+
+}  // namespace
+
+TrianglePoint closest_point_on_triangle(const double* p, const double* a, const double* b,
+                                        const double* c) {
+    double ab[3], ac[3], ap[3], n[3];
+    sub(b, a, ab);
+    sub(c, a, ac);
+    cross(ab, ac, n);
+    const double n2 = dot(n, n);
+    if (!(n2 > kDegenerateSin2 * dot(ab, ab) * dot(ac, ac))) return closest_on_edges(p, a, b, c);
+
+    TrianglePoint result;
+    sub(p, a, ap);
+    const double d1 = dot(ab, ap);
+    const double d2 = dot(ac, ap);
+    if (d1 <= 0.0 && d2 <= 0.0) {  // beyond corner a
+        set_result(result, p, a, 1.0, 0.0, 0.0);
+        return result;
+    }
+    double bp[3];
+    sub(p, b, bp);
+    const double d3 = dot(ab, bp);
+    const double d4 = dot(ac, bp);
+    if (d3 >= 0.0 && d4 <= d3) {  // beyond corner b
+        set_result(result, p, b, 0.0, 1.0, 0.0);
+        return result;
+    }
+    double point[3];
+    const double vc = d1 * d4 - d3 * d2;
+    if (vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0) {  // outside edge ab, between a and b
+        const double s = d1 / (d1 - d3);
+        for (int i = 0; i < 3; ++i) point[i] = a[i] + s * ab[i];
+        set_result(result, p, point, 1.0 - s, s, 0.0);
+        return result;
+    }
+    double cp[3];
+    sub(p, c, cp);
+    const double d5 = dot(ab, cp);
+    const double d6 = dot(ac, cp);
+    if (d6 >= 0.0 && d5 <= d6) {  // beyond corner c
+        set_result(result, p, c, 0.0, 0.0, 1.0);
+        return result;
+    }
+    const double vb = d5 * d2 - d1 * d6;
+    if (vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0) {  // outside edge ac
+        const double s = d2 / (d2 - d6);
+        for (int i = 0; i < 3; ++i) point[i] = a[i] + s * ac[i];
+        set_result(result, p, point, 1.0 - s, 0.0, s);
+        return result;
+    }
+    const double va = d3 * d6 - d5 * d4;
+    if (va <= 0.0 && d4 - d3 >= 0.0 && d5 - d6 >= 0.0) {  // outside edge bc
+        const double s = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        for (int i = 0; i < 3; ++i) point[i] = b[i] + s * (c[i] - b[i]);
+        set_result(result, p, point, 0.0, 1.0 - s, s);
+        return result;
+    }
+    // Inside the face: project onto the plane. The weights are ratios of signed areas,
+    // computed as triple products with n (more accurate than va / (va + vb + vc), whose
+    // denominator cancels badly for thin triangles).
+    double t[3];
+    cross(ap, ac, t);
+    const double wb = dot(t, n) / n2;
+    cross(ab, ap, t);
+    const double wc = dot(t, n) / n2;
+    for (int i = 0; i < 3; ++i) point[i] = a[i] + wb * ab[i] + wc * ac[i];
+    set_result(result, p, point, 1.0 - wb - wc, wb, wc);
+    return result;
+}
+
+bool intersect_line_triangle(const double* o, const double* d, const double* a, const double* b,
+                             const double* c, double& t, double& u, double& v) {
+    double e1[3], e2[3], pvec[3];
+    sub(b, a, e1);
+    sub(c, a, e2);
+    cross(d, e2, pvec);
+    const double det = dot(e1, pvec);
+    const double scale = std::sqrt(dot(d, d) * dot(e1, e1) * dot(e2, e2));
+    if (!(std::abs(det) > kParallelSin * scale)) return false;
+    const double inv_det = 1.0 / det;
+    double s[3], qvec[3];
+    sub(o, a, s);
+    u = dot(s, pvec) * inv_det;
+    cross(s, e1, qvec);
+    v = dot(d, qvec) * inv_det;
+    t = dot(e2, qvec) * inv_det;
+    return true;
+}
+
+MeshSurface::MeshSurface(const PointsRef& vertices, const FacesRef& faces, int leaf_size)
+    : leaf_size_(std::max(1, leaf_size)) {
+    const auto nf = static_cast<std::int32_t>(faces.rows());
+    std::vector<double> centroids(3 * static_cast<std::size_t>(nf));
+    for (std::int32_t f = 0; f < nf; ++f)
+        for (int i = 0; i < 3; ++i)
+            centroids[3 * f + i] =
+                (vertices(faces(f, 0), i) + vertices(faces(f, 1), i) + vertices(faces(f, 2), i)) / 3.0;
+    triangle_index_.resize(static_cast<std::size_t>(nf));
+    std::iota(triangle_index_.begin(), triangle_index_.end(), std::int64_t{0});
+
+    // The margin added to every box: far above the rounding of a box test or a
+    // triangle-distance evaluation at the mesh's coordinate scale, far below anything
+    // geometric.
+    double scale = 1.0;
+    for (std::int32_t f = 0; f < nf; ++f)
+        for (int j = 0; j < 3; ++j)
+            for (int i = 0; i < 3; ++i) scale = std::max(scale, std::abs(vertices(faces(f, j), i)));
+    pad_ = 1e-9 * scale;
+
+    corners_.resize(9 * static_cast<std::size_t>(nf));
+    // Leaf-order corners are needed while building (for the boxes), so fill them from
+    // the original order first and permute after the build.
+    for (std::int32_t f = 0; f < nf; ++f)
+        for (int j = 0; j < 3; ++j)
+            for (int i = 0; i < 3; ++i) corners_[9 * f + 3 * j + i] = vertices(faces(f, j), i);
+    if (nf > 0) {
+        nodes_.reserve(static_cast<std::size_t>(2 * (nf / leaf_size_ + 1)));
+        build(0, nf, centroids);
+    }
+    std::vector<double> permuted(corners_.size());
+    for (std::int32_t f = 0; f < nf; ++f)
+        std::copy_n(corners_.begin() + 9 * triangle_index_[f], 9, permuted.begin() + 9 * f);
+    corners_.swap(permuted);
+}
+
+std::int32_t MeshSurface::build(std::int32_t begin, std::int32_t end,
+                                const std::vector<double>& centroids) {
+    const auto id = static_cast<std::int32_t>(nodes_.size());
+    nodes_.emplace_back();
+    Node node;
+    double clo[3], chi[3];
+    for (int a = 0; a < 3; ++a) {
+        node.lo[a] = clo[a] = kInf;
+        node.hi[a] = chi[a] = -kInf;
+    }
+    for (std::int32_t i = begin; i < end; ++i) {
+        const std::int64_t f = triangle_index_[i];
+        for (int a = 0; a < 3; ++a) {
+            for (int j = 0; j < 3; ++j) {
+                node.lo[a] = std::min(node.lo[a], corners_[9 * f + 3 * j + a]);
+                node.hi[a] = std::max(node.hi[a], corners_[9 * f + 3 * j + a]);
+            }
+            clo[a] = std::min(clo[a], centroids[3 * f + a]);
+            chi[a] = std::max(chi[a], centroids[3 * f + a]);
+        }
+    }
+    for (int a = 0; a < 3; ++a) {
+        node.lo[a] -= pad_;
+        node.hi[a] += pad_;
+    }
+    node.begin = begin;
+    node.end = end;
+    node.left = node.right = -1;
+    if (end - begin > leaf_size_) {
+        int axis = 0;
+        for (int a = 1; a < 3; ++a)
+            if (chi[a] - clo[a] > chi[axis] - clo[axis]) axis = a;
+        const std::int32_t mid = begin + (end - begin) / 2;
+        const double* c = centroids.data();
+        std::nth_element(triangle_index_.begin() + begin, triangle_index_.begin() + mid,
+                         triangle_index_.begin() + end, [c, axis](std::int64_t x, std::int64_t y) {
+                             return c[3 * x + axis] < c[3 * y + axis];
+                         });
+        node.left = build(begin, mid, centroids);
+        node.right = build(mid, end, centroids);
+    }
+    nodes_[static_cast<std::size_t>(id)] = node;
+    return id;
+}
+
+void MeshSurface::closest_point(const PointsRef& queries, double* points, std::int64_t* triangles,
+                                double* barycentric, double* distances, int workers) const {
+    const auto m = static_cast<std::size_t>(queries.rows());
+    parallel_rows(m, kRowChunk, workers, [&](std::size_t row_begin, std::size_t row_end) {
+        struct Entry {
+            std::int32_t node;
+            double d2;
+        };
+        Entry stack[kStackSize];
+        for (std::size_t r = row_begin; r < row_end; ++r) {
+            const double q[3] = {queries(r, 0), queries(r, 1), queries(r, 2)};
+            TrianglePoint best;
+            best.squared_distance = kInf;
+            std::int64_t best_index = -1;
+            int top = 0;
+            if (!nodes_.empty()) stack[top++] = Entry{0, box_distance(nodes_[0], q)};
+            while (top > 0) {
+                const Entry entry = stack[--top];
+                // Strictly farther boxes only: a triangle at exactly the best distance may
+                // still win the tie on its index.
+                if (entry.d2 > best.squared_distance) continue;
+                const Node& node = nodes_[static_cast<std::size_t>(entry.node)];
+                if (node.left < 0) {
+                    for (std::int32_t i = node.begin; i < node.end; ++i) {
+                        const double* tri = corners_.data() + 9 * static_cast<std::size_t>(i);
+                        const TrianglePoint candidate =
+                            closest_point_on_triangle(q, tri, tri + 3, tri + 6);
+                        const std::int64_t index = triangle_index_[static_cast<std::size_t>(i)];
+                        if (candidate.squared_distance < best.squared_distance ||
+                            (candidate.squared_distance == best.squared_distance && index < best_index)) {
+                            best = candidate;
+                            best_index = index;
+                        }
+                    }
+                    continue;
+                }
+                Entry near{node.left, box_distance(nodes_[static_cast<std::size_t>(node.left)], q)};
+                Entry far{node.right, box_distance(nodes_[static_cast<std::size_t>(node.right)], q)};
+                if (far.d2 < near.d2) std::swap(near, far);
+                if (far.d2 <= best.squared_distance) stack[top++] = far;
+                if (near.d2 <= best.squared_distance) stack[top++] = near;  // popped first
+            }
+            double* out_point = points + 3 * r;
+            double* out_bary = barycentric + 3 * r;
+            if (best_index < 0) {
+                for (int i = 0; i < 3; ++i) out_point[i] = out_bary[i] = kNaN;
+                distances[r] = kNaN;
+                triangles[r] = -1;
+                continue;
+            }
+            for (int i = 0; i < 3; ++i) {
+                out_point[i] = best.point[i];
+                out_bary[i] = best.barycentric[i];
+            }
+            distances[r] = std::sqrt(best.squared_distance);
+            triangles[r] = best_index;
+        }
+    });
+}
+
+void MeshSurface::intersect_rays(const PointsRef& origins, const PointsRef& directions,
+                                 double max_distance, bool both_directions, bool* hit, double* t,
+                                 double* points, std::int64_t* triangles, double* barycentric,
+                                 int workers) const {
+    const auto m = static_cast<std::size_t>(origins.rows());
+    parallel_rows(m, kRowChunk, workers, [&](std::size_t row_begin, std::size_t row_end) {
+        struct Entry {
+            std::int32_t node;
+            double key;  // the smallest |t| (or t) at which the ray can meet the box
+        };
+        Entry stack[kStackSize];
+        for (std::size_t r = row_begin; r < row_end; ++r) {
+            const double o[3] = {origins(r, 0), origins(r, 1), origins(r, 2)};
+            const double d[3] = {directions(r, 0), directions(r, 1), directions(r, 2)};
+            const double inv[3] = {1.0 / d[0], 1.0 / d[1], 1.0 / d[2]};
+            // Hits are ranked by key = t (one direction) or |t| (both), then by index.
+            double best_key = max_distance;
+            double best_t = kNaN, best_u = kNaN, best_v = kNaN;
+            std::int64_t best_index = -1;
+            std::int32_t best_slot = -1;  // leaf-order position of the best triangle
+            auto interval = [&](const Node& node, double& key) {
+                const double lo = both_directions ? -best_key : 0.0;
+                double enter, exit;
+                if (!box_interval(node, o, d, inv, lo, best_key, enter, exit)) return false;
+                key = both_directions ? (enter <= 0.0 && exit >= 0.0 ? 0.0
+                                                                     : std::min(std::abs(enter), std::abs(exit)))
+                                      : enter;
+                return true;
+            };
+            int top = 0;
+            double root_key;
+            if (!nodes_.empty() && interval(nodes_[0], root_key)) stack[top++] = Entry{0, root_key};
+            while (top > 0) {
+                const Entry entry = stack[--top];
+                if (entry.key > best_key) continue;
+                const Node& node = nodes_[static_cast<std::size_t>(entry.node)];
+                if (node.left < 0) {
+                    for (std::int32_t i = node.begin; i < node.end; ++i) {
+                        const double* tri = corners_.data() + 9 * static_cast<std::size_t>(i);
+                        double th, u, v;
+                        if (!intersect_line_triangle(o, d, tri, tri + 3, tri + 6, th, u, v)) continue;
+                        if (!(u >= 0.0 && v >= 0.0 && u + v <= 1.0)) continue;
+                        if (!both_directions && th < 0.0) continue;
+                        const double key = both_directions ? std::abs(th) : th;
+                        const std::int64_t index = triangle_index_[static_cast<std::size_t>(i)];
+                        if (key < best_key || (key == best_key && (best_index < 0 || index < best_index))) {
+                            best_key = key;
+                            best_t = th;
+                            best_u = u;
+                            best_v = v;
+                            best_index = index;
+                            best_slot = i;
+                        }
+                    }
+                    continue;
+                }
+                Entry near{node.left, 0.0}, far{node.right, 0.0};
+                const bool near_ok = interval(nodes_[static_cast<std::size_t>(node.left)], near.key);
+                const bool far_ok = interval(nodes_[static_cast<std::size_t>(node.right)], far.key);
+                if (near_ok && far_ok && far.key < near.key) std::swap(near, far);
+                if (near_ok && far_ok) {
+                    stack[top++] = far;
+                    stack[top++] = near;
+                } else if (near_ok) {
+                    stack[top++] = near;
+                } else if (far_ok) {
+                    stack[top++] = far;
+                }
+            }
+            double* out_point = points + 3 * r;
+            double* out_bary = barycentric + 3 * r;
+            if (best_index < 0) {
+                hit[r] = false;
+                t[r] = kNaN;
+                triangles[r] = -1;
+                for (int i = 0; i < 3; ++i) out_point[i] = out_bary[i] = kNaN;
+                continue;
+            }
+            hit[r] = true;
+            t[r] = best_t;
+            triangles[r] = best_index;
+            out_bary[0] = 1.0 - best_u - best_v;
+            out_bary[1] = best_u;
+            out_bary[2] = best_v;
+            // From the weights rather than o + t d: the reported point lies on the triangle.
+            const double* tri = corners_.data() + 9 * static_cast<std::size_t>(best_slot);
+            for (int i = 0; i < 3; ++i)
+                out_point[i] = out_bary[0] * tri[i] + out_bary[1] * tri[3 + i] + out_bary[2] * tri[6 + i];
+        }
+    });
+}
+
+}  // namespace tpscore

@@ -6,12 +6,16 @@ kernels in ``tpscore._core`` are private.
 from __future__ import annotations
 
 from ._core import num_threads, set_num_threads
-from .spatial import KDTree
+from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "ClosestPoints",
     "KDTree",
+    "MeshSurface",
+    "RayHits",
+    "closest_point_on_mesh",
     "num_threads",
     "set_num_threads",
 ]

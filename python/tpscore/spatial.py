@@ -7,14 +7,19 @@ input coordinates (mm throughout tpscore).
 from __future__ import annotations
 
 import numbers
+from typing import NamedTuple
 
 import numpy as np
 
 from . import _core
-from ._validation import as_points
+from ._validation import as_faces, as_points
 
 __all__ = [
     "KDTree",
+    "MeshSurface",
+    "ClosestPoints",
+    "RayHits",
+    "closest_point_on_mesh",
 ]
 
 
@@ -215,3 +220,172 @@ class KDTree:
         """
         _, indices = self.query(points, 1, workers=workers)
         return indices, self._points[indices]
+
+
+class ClosestPoints(NamedTuple):
+    """Closest points on a mesh, one row per query point."""
+
+    points: np.ndarray
+    """(m, 3) the closest point of the surface (mm)."""
+    triangles: np.ndarray
+    """(m,) int64 index of the triangle it lies on (ties: the smaller index)."""
+    barycentric: np.ndarray
+    """(m, 3) its weights on that triangle's corners, in the order of ``faces``."""
+    distances: np.ndarray
+    """(m,) distance from the query point (mm)."""
+
+
+class RayHits(NamedTuple):
+    """Nearest ray-mesh intersections, one row per ray; misses hold NaN and -1."""
+
+    hit: np.ndarray
+    """(m,) bool, whether the ray met the mesh within the distance limit."""
+    distances: np.ndarray
+    """(m,) signed distance t along the unit direction (mm); negative for a hit behind the
+    origin (only with ``both_directions``); NaN for a miss."""
+    points: np.ndarray
+    """(m, 3) the hit point (mm), NaN for a miss."""
+    triangles: np.ndarray
+    """(m,) int64 triangle hit, -1 for a miss."""
+    barycentric: np.ndarray
+    """(m, 3) the hit's weights on the triangle's corners, NaN for a miss."""
+
+
+class MeshSurface:
+    """A triangle mesh prepared for exact closest-point and ray queries.
+
+    Builds a bounding-volume hierarchy over the triangles once; queries then cost about
+    log(number of triangles) each instead of a scan of every triangle. Answers are exact:
+    the same as testing every triangle, with ties going to the smaller triangle index.
+    Immutable, so several threads may query it at once; every query releases the GIL.
+
+    Parameters
+    ----------
+    vertices : array_like, shape (n, 3)
+        Vertex positions (mm), finite. Copied.
+    faces : array_like of int, shape (t, 3)
+        Triangles as vertex indices in [0, n), t >= 1. Degenerate (zero-area) triangles
+        are allowed: for closest points they act as their edges; rays never hit them.
+    """
+
+    def __init__(self, vertices, faces):
+        vertices = as_points(vertices, "vertices", allow_empty=False).copy()
+        faces = as_faces(faces, len(vertices), "faces").copy()
+        if len(faces) == 0:
+            raise ValueError("faces is empty; a mesh needs at least one triangle")
+        if len(faces) >= 2**31:
+            raise ValueError(f"faces has {len(faces)} triangles; at most 2**31 - 1 are supported")
+        vertices.setflags(write=False)
+        faces.setflags(write=False)
+        self._vertices = vertices
+        self._faces = faces
+        self._surface = _core.MeshSurface(vertices, faces)
+
+    @property
+    def vertices(self) -> np.ndarray:
+        """(n, 3) float64 vertex positions, read-only."""
+        return self._vertices
+
+    @property
+    def faces(self) -> np.ndarray:
+        """(t, 3) int64 triangles, read-only."""
+        return self._faces
+
+    def __repr__(self) -> str:
+        return f"MeshSurface(vertices={len(self._vertices)}, triangles={len(self._faces)})"
+
+    def closest_point(self, points, *, workers: int = -1) -> ClosestPoints:
+        """The closest point of the surface to each query point.
+
+        Parameters
+        ----------
+        points : array_like, shape (m, 3)
+            Query points (mm), finite.
+        workers : int, default -1
+            Threads to use: -1 for all, 1 for serial.
+
+        Returns
+        -------
+        ClosestPoints
+            ``points`` (m, 3), ``triangles`` (m,), ``barycentric`` (m, 3),
+            ``distances`` (m,).
+        """
+        queries = as_points(points, "points")
+        closest, triangles, barycentric, distances = self._surface.closest_point(
+            queries, _workers(workers))
+        return ClosestPoints(closest, _int64(triangles), barycentric, distances)
+
+    def intersect_rays(self, origins, directions, *, max_distance: float = np.inf,
+                       both_directions: bool = False, workers: int = -1) -> RayHits:
+        """The nearest intersection of each ray with the surface.
+
+        Parameters
+        ----------
+        origins : array_like, shape (m, 3)
+            Ray origins (mm), finite.
+        directions : array_like, shape (m, 3)
+            Ray directions, finite and non-zero; normalised here, so distances are in mm
+            whatever their length.
+        max_distance : float, default inf
+            Hits farther than this from the origin (mm) are ignored; >= 0.
+        both_directions : bool, default False
+            Also look behind the origin (negative distances) and take the hit nearest
+            to the origin either side, as when a point is projected onto a surface along
+            its normal without knowing on which side the surface lies.
+        workers : int, default -1
+            Threads to use: -1 for all, 1 for serial.
+
+        Returns
+        -------
+        RayHits
+            ``hit`` (m,), ``distances`` (m,), ``points`` (m, 3), ``triangles`` (m,),
+            ``barycentric`` (m, 3); NaN (and triangle -1) where a ray misses.
+
+        Notes
+        -----
+        The triangle boundary counts as inside, so a ray through a shared edge hits (the
+        triangle with the smaller index on a tie). A ray lying in a triangle's plane does
+        not hit that triangle.
+        """
+        origins = as_points(origins, "origins")
+        directions = as_points(directions, "directions")
+        if len(directions) != len(origins):
+            raise ValueError(
+                f"directions must have one row per origin: {len(directions)} rows for "
+                f"{len(origins)} origins"
+            )
+        lengths = np.sqrt(np.einsum("ij,ij->i", directions, directions))
+        zero = np.flatnonzero(~(lengths > 0))
+        if len(zero):
+            raise ValueError(
+                f"directions has zero length at row {zero[0]} ({len(zero)} row(s) in all); "
+                "a ray needs a direction"
+            )
+        unit = directions / lengths[:, None]
+        limit = _radius(max_distance, "max_distance")
+        hit, t, points, triangles, barycentric = self._surface.intersect_rays(
+            origins, unit, limit, bool(both_directions), _workers(workers))
+        return RayHits(hit, t, points, _int64(triangles), barycentric)
+
+
+def closest_point_on_mesh(vertices, faces, points, *, workers: int = -1) -> ClosestPoints:
+    """The closest point of a triangle mesh to each query point.
+
+    A one-off shortcut for ``MeshSurface(vertices, faces).closest_point(points)``; build a
+    :class:`MeshSurface` once to query the same mesh repeatedly.
+
+    Parameters
+    ----------
+    vertices : array_like, shape (n, 3)
+        Vertex positions (mm).
+    faces : array_like of int, shape (t, 3)
+        Triangles as vertex indices.
+    points : array_like, shape (m, 3)
+        Query points (mm).
+
+    Returns
+    -------
+    ClosestPoints
+        ``points`` (m, 3), ``triangles`` (m,), ``barycentric`` (m, 3), ``distances`` (m,).
+    """
+    return MeshSurface(vertices, faces).closest_point(points, workers=workers)

@@ -1,0 +1,89 @@
+// Surface queries on a triangle mesh: closest point and ray casting, accelerated by a
+// bounding-volume hierarchy (BVH) over the triangles.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include "tpscore/types.hpp"
+
+namespace tpscore {
+
+/// The point of one triangle closest to a query point.
+struct TrianglePoint {
+    double point[3];        ///< the closest point
+    double barycentric[3];  ///< its weights on the corners a, b, c (sum 1, each >= 0)
+    double squared_distance;
+};
+
+/// Exact closest point of the triangle (a, b, c) to p (3 doubles each).
+/// Classifies p into the Voronoi regions of the corners, edges and face of the triangle.
+/// Degenerate triangles (zero or near-zero area) are treated as their three edges, so the
+/// result is always finite for finite input.
+TrianglePoint closest_point_on_triangle(const double* p, const double* a, const double* b,
+                                        const double* c);
+
+/// Intersection of the line o + t d with the triangle (a, b, c), boundary included.
+/// Returns false when the line is parallel to the triangle's plane (to a relative 1e-12)
+/// or the triangle is degenerate; otherwise true with t (in units of |d|) and the
+/// barycentric weights u (of b) and v (of c), whether or not the hit lies inside the
+/// triangle: callers check u >= 0, v >= 0, u + v <= 1.
+bool intersect_line_triangle(const double* o, const double* d, const double* a, const double* b,
+                             const double* c, double& t, double& u, double& v);
+
+/// A triangle mesh prepared for closest-point and ray queries. Immutable after
+/// construction, so concurrent queries from several threads are safe.
+///
+/// The BVH splits the triangles at the median centroid along the widest axis of their
+/// centroids, down to leaves of `leaf_size` triangles; each node's box bounds its
+/// triangles, padded by a tiny margin so that rounding never hides a triangle that
+/// touches the box boundary. Every query is exact: it returns what testing all triangles
+/// would, with ties (equal distance) going to the smaller triangle index.
+///
+/// `workers` (every batched query): the number of threads to use; <= 0 means
+/// tpscore::num_threads(); 1 runs serially.
+class MeshSurface {
+public:
+    /// Preconditions: vertices (nv, 3) finite; faces (nf, 3) with indices in [0, nv).
+    MeshSurface(const PointsRef& vertices, const FacesRef& faces, int leaf_size = 4);
+
+    std::int64_t num_triangles() const { return static_cast<std::int64_t>(triangle_index_.size()); }
+
+    /// For each row of `queries` (m, 3): the closest point of the mesh (m, 3 row-major
+    /// `points`), its triangle (`triangles`, m), barycentric weights on that triangle's
+    /// corners in face order (`barycentric`, m x 3) and the distance (`distances`, m).
+    /// With no triangles, every output is NaN / -1. Threaded over query rows.
+    void closest_point(const PointsRef& queries, double* points, std::int64_t* triangles,
+                       double* barycentric, double* distances, int workers = 0) const;
+
+    /// Casts the rays origins[i] + t directions[i] (m, 3 each; directions non-zero) and
+    /// reports the nearest hit with 0 <= t <= max_distance, or with |t| <= max_distance
+    /// (nearest by |t|) when `both_directions`. t is in units of |directions[i]|.
+    /// Writes hit (m), t (m), points (m x 3), triangles (m), barycentric (m x 3);
+    /// a miss writes false, NaN and -1. Rays parallel to a triangle do not hit it.
+    /// Threaded over rays.
+    void intersect_rays(const PointsRef& origins, const PointsRef& directions, double max_distance,
+                        bool both_directions, bool* hit, double* t, double* points,
+                        std::int64_t* triangles, double* barycentric, int workers = 0) const;
+
+    struct Node {
+        double lo[3];
+        double hi[3];
+        std::int32_t begin;  ///< first triangle (leaf order) of a leaf
+        std::int32_t end;
+        std::int32_t left;   ///< -1 for a leaf
+        std::int32_t right;
+    };
+
+private:
+    std::int32_t build(std::int32_t begin, std::int32_t end, const std::vector<double>& centroids);
+
+    // Corners of each triangle in leaf order: 9 doubles (a, b, c) per triangle.
+    std::vector<double> corners_;
+    std::vector<std::int64_t> triangle_index_;  // original index of each leaf-order triangle
+    std::vector<Node> nodes_;
+    double pad_ = 0.0;
+    int leaf_size_;
+};
+
+}  // namespace tpscore
