@@ -308,6 +308,7 @@ def test_properties_repr_and_immutability():
         (lambda: KDTree(np.eye(3)).query([[0, 0]]), r"points must have shape \(n, 3\)"),
         (lambda: KDTree(np.eye(3)).query([[0, 0, 0]], k=0), "k must be >= 1"),
         (lambda: KDTree(np.eye(3)).query([[0, 0, 0]], k=1.5), "k must be an integer"),
+        (lambda: KDTree(np.eye(3)).query(np.zeros((4, 3)), k=2**27), "output slots"),
         (lambda: KDTree(np.eye(3)).query([[0, 0, 0]], distance_upper_bound=-1), "distance_upper_bound must be >= 0"),
         (lambda: KDTree(np.eye(3)).query([[0, 0, 0]], distance_upper_bound=np.nan), "distance_upper_bound must be >= 0"),
         (lambda: KDTree(np.eye(3)).query([[0, 0, 0]], workers=0), "workers must be -1"),

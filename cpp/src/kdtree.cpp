@@ -236,7 +236,8 @@ void KDTree::query(const PointsRef& queries, int k, double max_distance, double*
     const bool empty = nodes_.empty();
     parallel_rows(m, kQueryChunk, workers, [&](std::size_t begin, std::size_t end) {
         std::vector<Candidate> buffer;
-        if (k > SortedCandidates::kCapacity) buffer.reserve(kk);
+        if (k > SortedCandidates::kCapacity)
+            buffer.reserve(std::min<std::size_t>(kk, static_cast<std::size_t>(size())));
         for (std::size_t r = begin; r < end; ++r) {
             const double q[3] = {queries(r, 0), queries(r, 1), queries(r, 2)};
             double* row_d = distances + r * kk;

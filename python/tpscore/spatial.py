@@ -12,7 +12,7 @@ from typing import NamedTuple
 import numpy as np
 
 from . import _core
-from ._validation import as_faces, as_points
+from ._validation import MAX_DENSE_ELEMENTS, as_faces, as_points
 
 __all__ = [
     "KDTree",
@@ -142,6 +142,12 @@ class KDTree:
         queries = as_points(points, "points")
         k = _positive_int(k, "k")
         bound = _radius(distance_upper_bound, "distance_upper_bound")
+        if len(queries) * k > MAX_DENSE_ELEMENTS:
+            raise ValueError(
+                f"k = {k} neighbours for {len(queries)} points would need "
+                f"{len(queries) * k} output slots (limit {MAX_DENSE_ELEMENTS}); "
+                "query fewer points at a time or use query_radius_csr"
+            )
         distances, indices = self._tree.query(queries, k, bound, _workers(workers))
         indices = _int64(indices)
         # cKDTree's convention for a missing neighbour: index n, one past the last point.
