@@ -6,10 +6,35 @@ kernels in ``tpscore._core`` are private.
 from __future__ import annotations
 
 from ._core import num_threads, set_num_threads
+from .datasets import (
+    ACTION_UNITS,
+    FaceParameters,
+    SyntheticScan,
+    au_displacement,
+    demo_triplet,
+    embedded_faces,
+    face_height,
+    face_landmarks,
+    make_face,
+    random_identity,
+    sample_subjects,
+)
 
 __version__ = "0.1.0"
 
 __all__ = [
     "num_threads",
     "set_num_threads",
+    # procedural faces
+    "ACTION_UNITS",
+    "FaceParameters",
+    "SyntheticScan",
+    "au_displacement",
+    "demo_triplet",
+    "embedded_faces",
+    "face_height",
+    "face_landmarks",
+    "make_face",
+    "random_identity",
+    "sample_subjects",
 ]
