@@ -19,6 +19,18 @@ from .datasets import (
     random_identity,
     sample_subjects,
 )
+from .render import (
+    Camera,
+    error_heatmap,
+    fit_camera,
+    grid_mesh,
+    heatmap_colors,
+    render_grid,
+    render_mesh,
+    save_gif,
+    save_png,
+    side_by_side,
+)
 
 __version__ = "0.1.0"
 
@@ -37,4 +49,15 @@ __all__ = [
     "make_face",
     "random_identity",
     "sample_subjects",
+    # headless rendering
+    "Camera",
+    "error_heatmap",
+    "fit_camera",
+    "grid_mesh",
+    "heatmap_colors",
+    "render_grid",
+    "render_mesh",
+    "save_gif",
+    "save_png",
+    "side_by_side",
 ]
