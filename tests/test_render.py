@@ -157,6 +157,17 @@ def test_heatmap_colors_are_monotonic_in_lightness():
         heatmap_colors([1.0], cmap="jet")
 
 
+def test_grid_colors_follow_the_vertices():
+    points = face_grid_150()
+    values = np.where(points[..., 0] > 0, 1.0, 0.0)  # the subject's left half "hot"
+    image = render_grid(points, colors=values, width=150, height=150, light=(0, 0, 1)).astype(int)
+    hot, cold = heatmap_colors([1.0, 0.0], vmax=1.0) * 255
+    right_half, left_half = image[75, 100], image[75, 50]
+    # Lit head-on, the shade is albedo * (ambient + diffuse * n.z) plus specular: the
+    # hue survives, so compare the colour directions.
+    assert np.argmax(right_half) == np.argmax(hot) and np.argmax(left_half) == np.argmax(cold)
+
+
 def test_error_heatmap_has_a_colour_bar():
     vertices, faces = grid_mesh(face_grid_150())
     errors = np.hypot(vertices[:, 0], vertices[:, 1]) / 30.0

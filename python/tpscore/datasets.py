@@ -190,6 +190,19 @@ class FaceParameters:
         return dataclasses.replace(self, **changes)
 
 
+# Proportions and offsets (mm) that place anatomy not given by a FaceParameters field.
+CANTHAL_TILT = 0.08              # outer eye corners above the inner, per mm of eye width
+ALAR_LEVEL = -0.13               # nose peaks' height, as a fraction of the nose length
+MENTON_DROP = 0.3                # menton below the chin middle, per mm of chin height
+OUTLINE_BELOW_MENTON = 4.0       # the scan ends this far below the menton
+BROW_INNER_END_INSET = 2.0       # inner brow end toward the midline from the inner corner
+BROW_OUTER_END_OUTSET = 5.0      # outer brow end beyond the outer eye corner
+BROW_INNER_END_DROP = 3.0        # brow ends below the brow's middle
+BROW_OUTER_END_DROP = 4.0
+NOSE_SADDLE_FRACTION = 0.5       # saddle points' x over the inner eye corners' x
+NOSE_SADDLE_DROP = 4.0           # saddle points below the eye line
+
+
 class _Anatomy:
     """Positions (face frame, mm) derived from FaceParameters: the anchors of the
     surface terms, the landmarks and the AU fields."""
@@ -201,20 +214,20 @@ class _Anatomy:
         self.x_eye = p.eye_spacing / 2
         self.y_eye = p.eye_height
         # The outer corners sit a little higher than the inner ones (canthal tilt).
-        self.y_eye_outer = p.eye_height + 0.08 * p.eye_width
+        self.y_eye_outer = p.eye_height + CANTHAL_TILT * p.eye_width
         self.y_brow = p.eye_height + p.brow_height
         self.y_nasion = p.nose_length
         self.x_alar = p.nose_width / 2
-        self.y_alar = -0.13 * p.nose_length
+        self.y_alar = ALAR_LEVEL * p.nose_length
         self.x_mouth = p.mouth_width / 2
         self.y_mouth = -p.mouth_height
         self.y_upper_lip = self.y_mouth + p.upper_lip_height
         self.y_lower_lip = self.y_mouth - p.lower_lip_height
         self.y_chin = self.y_mouth - p.chin_height
         # Menton (lowest point of the chin), below which the surface turns under.
-        self.y_menton = self.y_chin - 0.3 * p.chin_height
+        self.y_menton = self.y_chin - MENTON_DROP * p.chin_height
         self.y_top = self.y_brow + p.forehead_height
-        self.y_bottom = self.y_menton - 4.0
+        self.y_bottom = self.y_menton - OUTLINE_BELOW_MENTON
         self.y_outline_centre = (self.y_top + self.y_bottom) / 2
         self.outline_half_height = (self.y_top - self.y_bottom) / 2
 
@@ -234,22 +247,25 @@ class _Anatomy:
 
     def landmarks_xy(self) -> np.ndarray:
         """(22, 2) x, y of the landmarks, Bosphorus order."""
-        brow_inner_x = self.x_eye_inner - 2.0
-        brow_outer_x = self.x_eye_outer + 5.0
-        saddle_x = 0.5 * self.x_eye_inner
+        brow_inner_x = self.x_eye_inner - BROW_INNER_END_INSET
+        brow_outer_x = self.x_eye_outer + BROW_OUTER_END_OUTSET
+        brow_inner_y = self.y_brow - BROW_INNER_END_DROP
+        brow_outer_y = self.y_brow - BROW_OUTER_END_DROP
+        saddle_x = NOSE_SADDLE_FRACTION * self.x_eye_inner
+        saddle_y = self.y_eye - NOSE_SADDLE_DROP
         positions = {
-            "Outer left eyebrow": (brow_outer_x, self.y_brow - 4.0),
+            "Outer left eyebrow": (brow_outer_x, brow_outer_y),
             "Middle left eyebrow": (self.x_eye, self.y_brow),
-            "Inner left eyebrow": (brow_inner_x, self.y_brow - 3.0),
-            "Inner right eyebrow": (-brow_inner_x, self.y_brow - 3.0),
+            "Inner left eyebrow": (brow_inner_x, brow_inner_y),
+            "Inner right eyebrow": (-brow_inner_x, brow_inner_y),
             "Middle right eyebrow": (-self.x_eye, self.y_brow),
-            "Outer right eyebrow": (-brow_outer_x, self.y_brow - 4.0),
+            "Outer right eyebrow": (-brow_outer_x, brow_outer_y),
             "Outer left eye corner": (self.x_eye_outer, self.y_eye_outer),
             "Inner left eye corner": (self.x_eye_inner, self.y_eye),
             "Inner right eye corner": (-self.x_eye_inner, self.y_eye),
             "Outer right eye corner": (-self.x_eye_outer, self.y_eye_outer),
-            "Nose saddle left": (saddle_x, self.y_eye - 4.0),
-            "Nose saddle right": (-saddle_x, self.y_eye - 4.0),
+            "Nose saddle left": (saddle_x, saddle_y),
+            "Nose saddle right": (-saddle_x, saddle_y),
             "Left nose peak": (self.x_alar, self.y_alar),
             "Nose tip": (0.0, 0.0),
             "Right nose peak": (-self.x_alar, self.y_alar),
@@ -264,27 +280,64 @@ class _Anatomy:
         return np.array([positions[name] for name in LANDMARK_NAMES], dtype=np.float64)
 
 
-# Surface-term constants (mm unless noted). Each is a shape choice of the model, named
-# so the height function reads as anatomy.
+# Surface-term constants. Each is a shape choice of the model, named so the height
+# function reads as anatomy. Lengths in mm; a SPREAD is the (x, y) standard deviation of
+# a Gaussian term; an OFFSET is (lateral, vertical) from the anchor named in its comment.
 BASE_WIDTH_FACTOR = 1.3          # base ellipsoid half-width over the outline half-width
 BASE_HEIGHT_FACTOR = 1.5         # base ellipsoid half-height over the outline half-height
+BASE_FLOOR = 0.05                # keeps the ellipsoid finite at grid corners outside it
 FOREHEAD_BULGE_MM = 3.0
+FOREHEAD_CENTRE_FRACTION = 0.8   # bulge centre above the brows, as a fraction of the forehead
+FOREHEAD_SPREAD = (45.0, 25.0)
 GLABELLA_FRACTION = 0.5          # glabella bump relative to the brow ridges
+GLABELLA_DROP = 6.0              # glabella below the brow line
+GLABELLA_SPREAD = (8.0, 7.0)
+BROW_RIDGE_OFFSET = (2.0, -4.0)  # from the middle of the brow
+BROW_RIDGE_SPREAD = (15.0, 6.0)
+EYE_SOCKET_RAISE = 1.5           # socket centre above the eye line
+EYE_SOCKET_WIDTH_FRACTION = 0.55  # x spread over the eye width
+EYE_SOCKET_SPREAD_Y = 9.0
 EYEBALL_FRACTION = 0.45          # eyeball bump relative to the socket depth
+EYEBALL_RAISE = 0.8
+EYEBALL_WIDTH_FRACTION = 0.33
+EYEBALL_SPREAD_Y = 5.0
 EYELID_LINE_DEPTH_MM = 1.2
 EYELID_LINE_WIDTH_MM = 0.7
+EYELID_LINE_ARCH_MM = 1.5        # the lid line bows up between the corners
 NASION_FRACTION = 0.35           # nose ridge height at the nasion relative to the tip
+NOSE_RIDGE_EXPONENT = 1.4        # >1: the ridge rises faster toward the tip (a straight dorsum)
+NASION_FADE = 8.0                # spread of the ridge's fade above the nasion
+COLUMELLA_FADE = 6.0             # spread of the ridge's fade below the tip
 NOSE_BRIDGE_HALF_WIDTH = 5.0
 NOSE_TIP_HALF_WIDTH = 8.0
 NOSE_TIP_BULB_FRACTION = 0.18    # the round tip on top of the ridge
+NOSE_TIP_BULB_DROP = 1.0
+NOSE_TIP_BULB_SPREAD = (6.0, 5.0)
 ALA_FRACTION = 0.32              # alae height relative to the nose projection
+ALA_OFFSET = (-4.5, 1.0)         # from the nose peak landmark
+ALA_SPREAD = (5.0, 5.5)
+CHEEK_OFFSET = (6.0, 14.0)       # from the eye centre's x and the alar level
+CHEEK_SPREAD = (16.0, 14.0)
 MUZZLE_MM = 9.0
+MUZZLE_RAISE = 2.0               # above the mouth line
+MUZZLE_WIDTH_FRACTION = 0.5      # x spread over the mouth width
+MUZZLE_SPREAD_Y = 16.0
+UPPER_LIP_WIDTH_FRACTION = 0.36  # x spread over the mouth width
+LOWER_LIP_WIDTH_FRACTION = 0.33
+LIP_HEIGHT_FRACTION = 0.45       # y spread over the lip's height
+LOWER_LIP_FULLNESS_RATIO = 1.1   # the lower lip is a little fuller than the upper
 MOUTH_LINE_DEPTH_MM = 2.5
 MOUTH_LINE_WIDTH_MM = 0.9
 MOUTH_LINE_HALF_GAP_MM = 0.6     # inner lip landmarks above and below the mouth line
 PHILTRUM_DEPTH_MM = 0.8
+PHILTRUM_SPREAD = (2.5, 5.0)
 LABIOMENTAL_DEPTH_MM = 2.5
+LABIOMENTAL_DROP = 5.0           # fold below the lower lip outer middle
+LABIOMENTAL_SPREAD = (14.0, 3.0)
+CHIN_RAISE = 2.0                 # chin bump centre above the chin middle landmark
+CHIN_SPREAD = (13.0, 9.0)
 UNDER_CHIN_CURVATURE = 0.35      # how fast (1/mm) the surface turns under below the menton
+UNDER_CHIN_KNEE = 3.0
 
 
 def _smoothstep(edge0, edge1, value):
@@ -313,55 +366,64 @@ def _height(anatomy: _Anatomy, x, y):
     a, p = anatomy, anatomy.p
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
-    ax = a.outline_half_width(y) * BASE_WIDTH_FACTOR
-    by = a.outline_half_height * BASE_HEIGHT_FACTOR
-    u = x / ax
-    v = (y - a.y_outline_centre) / by
-    # The base is only used inside the outline, where 1 - u^2 - v^2 > 0.3; the floor
-    # keeps grid corners outside it finite.
-    z = p.face_depth * (np.sqrt(np.maximum(1.0 - u * u - v * v, 0.05)) - 1.0)
+    u = x / (a.outline_half_width(y) * BASE_WIDTH_FACTOR)
+    v = (y - a.y_outline_centre) / (a.outline_half_height * BASE_HEIGHT_FACTOR)
+    z = p.face_depth * (np.sqrt(np.maximum(1.0 - u * u - v * v, BASE_FLOOR)) - 1.0)
 
-    z += FOREHEAD_BULGE_MM * _gauss(x, y, 0.0, a.y_brow + 0.8 * p.forehead_height, 45.0, 25.0)
-    z += GLABELLA_FRACTION * p.brow_prominence * _gauss(x, y, 0.0, a.y_brow - 6.0, 8.0, 7.0)
+    z += FOREHEAD_BULGE_MM * _gauss(
+        x, y, 0.0, a.y_brow + FOREHEAD_CENTRE_FRACTION * p.forehead_height, *FOREHEAD_SPREAD)
+    z += GLABELLA_FRACTION * p.brow_prominence * _gauss(
+        x, y, 0.0, a.y_brow - GLABELLA_DROP, *GLABELLA_SPREAD)
     for side in (1.0, -1.0):
-        z += p.brow_prominence * _gauss(x, y, side * (a.x_eye + 2.0), a.y_brow - 4.0, 15.0, 6.0)
-        z -= p.eye_depth * _gauss(x, y, side * a.x_eye, a.y_eye + 1.5, 0.55 * p.eye_width, 9.0)
+        z += p.brow_prominence * _gauss(x, y, side * (a.x_eye + BROW_RIDGE_OFFSET[0]),
+                                        a.y_brow + BROW_RIDGE_OFFSET[1], *BROW_RIDGE_SPREAD)
+        z -= p.eye_depth * _gauss(x, y, side * a.x_eye, a.y_eye + EYE_SOCKET_RAISE,
+                                  EYE_SOCKET_WIDTH_FRACTION * p.eye_width, EYE_SOCKET_SPREAD_Y)
         z += EYEBALL_FRACTION * p.eye_depth * _gauss(
-            x, y, side * a.x_eye, a.y_eye + 0.8, 0.33 * p.eye_width, 5.0)
+            x, y, side * a.x_eye, a.y_eye + EYEBALL_RAISE,
+            EYEBALL_WIDTH_FRACTION * p.eye_width, EYEBALL_SPREAD_Y)
         # The closed lids meet along a line from the inner to the outer eye corner.
         along = (side * x - a.x_eye_inner) / (a.x_eye_outer - a.x_eye_inner)
-        lid_line_y = a.y_eye + (a.y_eye_outer - a.y_eye) * along + 1.5 * along * (1.0 - along)
+        lid_line_y = (a.y_eye + (a.y_eye_outer - a.y_eye) * along
+                      + EYELID_LINE_ARCH_MM * along * (1.0 - along))
         lid_window = np.exp(-(((side * x - a.x_eye) / (0.5 * p.eye_width)) ** 6))
         z -= EYELID_LINE_DEPTH_MM * lid_window * np.exp(
             -0.5 * ((y - lid_line_y) / EYELID_LINE_WIDTH_MM) ** 2)
         z += ALA_FRACTION * p.nose_projection * _gauss(
-            x, y, side * (a.x_alar - 4.5), a.y_alar + 1.0, 5.0, 5.5)
-        z += p.cheek_fullness * _gauss(x, y, side * (a.x_eye + 6.0), a.y_alar + 14.0, 16.0, 14.0)
+            x, y, side * (a.x_alar + ALA_OFFSET[0]), a.y_alar + ALA_OFFSET[1], *ALA_SPREAD)
+        z += p.cheek_fullness * _gauss(x, y, side * (a.x_eye + CHEEK_OFFSET[0]),
+                                       a.y_alar + CHEEK_OFFSET[1], *CHEEK_SPREAD)
 
     # Nose ridge: height grows from the nasion to the tip, fades above the nasion and
     # quickly below the tip (the columella); the width grows toward the tip.
     t = np.clip((a.y_nasion - y) / a.y_nasion, 0.0, 1.0)
-    ridge = p.nose_projection * (NASION_FRACTION + (1.0 - NASION_FRACTION) * t ** 1.4)
-    ridge = ridge * np.where(y > a.y_nasion, np.exp(-0.5 * ((y - a.y_nasion) / 8.0) ** 2), 1.0)
-    ridge = ridge * np.where(y < 0.0, np.exp(-0.5 * (y / 6.0) ** 2), 1.0)
+    ridge = p.nose_projection * (NASION_FRACTION + (1.0 - NASION_FRACTION) * t ** NOSE_RIDGE_EXPONENT)
+    ridge = ridge * np.where(y > a.y_nasion, np.exp(-0.5 * ((y - a.y_nasion) / NASION_FADE) ** 2), 1.0)
+    ridge = ridge * np.where(y < 0.0, np.exp(-0.5 * (y / COLUMELLA_FADE) ** 2), 1.0)
     half_width = NOSE_BRIDGE_HALF_WIDTH + (NOSE_TIP_HALF_WIDTH - NOSE_BRIDGE_HALF_WIDTH) * t
     z += ridge * np.exp(-0.5 * (x / half_width) ** 2)
-    z += NOSE_TIP_BULB_FRACTION * p.nose_projection * _gauss(x, y, 0.0, -1.0, 6.0, 5.0)
+    z += NOSE_TIP_BULB_FRACTION * p.nose_projection * _gauss(
+        x, y, 0.0, -NOSE_TIP_BULB_DROP, *NOSE_TIP_BULB_SPREAD)
 
     # Mouth: muzzle, lips, closed mouth line, philtrum, labiomental fold.
-    z += MUZZLE_MM * _gauss(x, y, 0.0, a.y_mouth + 2.0, 0.5 * p.mouth_width, 16.0)
+    z += MUZZLE_MM * _gauss(x, y, 0.0, a.y_mouth + MUZZLE_RAISE,
+                            MUZZLE_WIDTH_FRACTION * p.mouth_width, MUZZLE_SPREAD_Y)
     z += p.lip_fullness * _gauss(x, y, 0.0, a.y_mouth + 0.5 * p.upper_lip_height,
-                                 0.36 * p.mouth_width, 0.45 * p.upper_lip_height)
-    z += 1.1 * p.lip_fullness * _gauss(x, y, 0.0, a.y_mouth - 0.5 * p.lower_lip_height,
-                                       0.33 * p.mouth_width, 0.45 * p.lower_lip_height)
+                                 UPPER_LIP_WIDTH_FRACTION * p.mouth_width,
+                                 LIP_HEIGHT_FRACTION * p.upper_lip_height)
+    z += LOWER_LIP_FULLNESS_RATIO * p.lip_fullness * _gauss(
+        x, y, 0.0, a.y_mouth - 0.5 * p.lower_lip_height,
+        LOWER_LIP_WIDTH_FRACTION * p.mouth_width, LIP_HEIGHT_FRACTION * p.lower_lip_height)
     line_window = np.exp(-((x / a.x_mouth) ** 6))
     z -= MOUTH_LINE_DEPTH_MM * line_window * np.exp(
         -0.5 * ((y - a.y_mouth) / MOUTH_LINE_WIDTH_MM) ** 2)
-    z -= PHILTRUM_DEPTH_MM * _gauss(x, y, 0.0, 0.5 * (a.y_upper_lip + a.y_alar) - 1.0, 2.5, 5.0)
-    z -= LABIOMENTAL_DEPTH_MM * _gauss(x, y, 0.0, a.y_lower_lip - 5.0, 14.0, 3.0)
+    z -= PHILTRUM_DEPTH_MM * _gauss(x, y, 0.0, 0.5 * (a.y_upper_lip + a.y_alar) - 1.0,
+                                    *PHILTRUM_SPREAD)
+    z -= LABIOMENTAL_DEPTH_MM * _gauss(x, y, 0.0, a.y_lower_lip - LABIOMENTAL_DROP,
+                                       *LABIOMENTAL_SPREAD)
 
-    z += p.chin_prominence * _gauss(x, y, 0.0, a.y_chin + 2.0, 13.0, 9.0)
-    z -= UNDER_CHIN_CURVATURE * _softplus(a.y_menton - y, 3.0) ** 2
+    z += p.chin_prominence * _gauss(x, y, 0.0, a.y_chin + CHIN_RAISE, *CHIN_SPREAD)
+    z -= UNDER_CHIN_CURVATURE * _softplus(a.y_menton - y, UNDER_CHIN_KNEE) ** 2
     return z
 
 
@@ -369,27 +431,37 @@ def _height(anatomy: _Anatomy, x, y):
 # Amplitudes (mm at weight 1) and spreads (mm) of the AU fields. Directions are given
 # for the subject's left side (x > 0); the right side is the mirror image.
 BROW_RAISE_MM = 4.0
+BROW_RAISE_BACK_FRACTION = 0.15  # the skin slides up a forehead that slopes back: -z with +y
+INNER_BROW_RAISE_OFFSET = (-3.0, -3.0)   # from the inner eye corner's x and the brow line
+OUTER_BROW_RAISE_OFFSET = (2.0, -2.0)    # from the outer eye corner's x and the brow line
 BROW_RAISE_SPREAD_X = 10.0
 BROW_RAISE_SPREAD_UP = 20.0      # the frontalis pulls a long strip of forehead skin
 BROW_RAISE_SPREAD_DOWN = 7.0     # the upper lid skin follows only a little
 BROW_LOWER_MM = np.array([-1.8, -3.0, 0.8])      # down, toward the midline, forward
 BROW_LOWER_SPREAD = (10.0, 9.0)
+BROW_LOWER_OFFSET = (-1.0, -3.0)         # from the inner eye corner's x and the brow line
 LIP_PULL_MM = np.array([2.5, 4.0, -1.5])         # zygomaticus major: up, out, back
 LIP_PULL_SPREAD = (11.0, 10.0)
 CHEEK_RAISE_MM = np.array([0.5, 1.5, 1.5])       # the cheek bunches up and forward
 CHEEK_RAISE_SPREAD = (12.0, 10.0)
+CHEEK_RAISE_OFFSET = (8.0, 20.0)         # from the mouth corner
 DIMPLER_MM = np.array([1.0, 0.3, -2.5])          # buccinator: into the face, slightly out
 DIMPLER_SPREAD = (7.0, 7.0)
 DIMPLE_DEPTH_MM = 1.5
 DIMPLE_SPREAD = (4.0, 4.0)
+DIMPLE_OFFSET = (8.0, -1.0)              # from the mouth corner
 LIP_DEPRESS_MM = np.array([0.8, -4.0, -0.5])     # depressor anguli oris: down
 LIP_DEPRESS_SPREAD = (9.0, 12.0)
+LIP_DEPRESS_OFFSET = (1.0, -4.0)         # from the mouth corner: the muscle lies below it
 CHIN_RAISE_MM = np.array([0.0, 3.5, 1.5])        # mentalis: chin boss up and forward
 CHIN_RAISE_SPREAD = (13.0, 10.0)
+CHIN_RAISE_ABOVE = 2.0                   # chin boss above the chin middle landmark
+MENTALIS_HALF_SEPARATION = 5.0           # each half of the paired muscle off the midline
 LOWER_LIP_PUSH_MM = np.array([0.0, 2.0, 1.5])    # the lower lip rides up on the chin
 LOWER_LIP_PUSH_SPREAD = (14.0, 5.0)
 LIP_STRETCH_MM = np.array([4.0, -0.5, -1.0])     # risorius: laterally
 LIP_STRETCH_SPREAD = (12.0, 7.0)
+LIP_STRETCH_OFFSET = (2.0, -1.0)         # from the mouth corner
 
 _AU_PATTERN = re.compile(r"^(?:au)?\s*(\d+)\s*([lr]?)$", re.IGNORECASE)
 
@@ -439,37 +511,44 @@ def _au_field(anatomy: _Anatomy, au: str, x, y) -> np.ndarray:
     for s in (1.0, -1.0):
         if au in ("1", "2"):
             if au == "1":
-                cx, cy = s * (a.x_eye_inner - 3.0), a.y_brow - 3.0
+                anchor_x, (dx, dy) = a.x_eye_inner, INNER_BROW_RAISE_OFFSET
             else:
-                cx, cy = s * (a.x_eye_outer + 2.0), a.y_brow - 2.0
-            w = _gauss(x, y, cx, cy, BROW_RAISE_SPREAD_X, BROW_RAISE_SPREAD_UP, BROW_RAISE_SPREAD_DOWN)
-            # The skin slides up over a forehead that slopes back: a little -z with +y.
-            total += _side_field(np.array([0.0, BROW_RAISE_MM, -0.15 * BROW_RAISE_MM]), w, s)
+                anchor_x, (dx, dy) = a.x_eye_outer, OUTER_BROW_RAISE_OFFSET
+            w = _gauss(x, y, s * (anchor_x + dx), a.y_brow + dy, BROW_RAISE_SPREAD_X,
+                       BROW_RAISE_SPREAD_UP, BROW_RAISE_SPREAD_DOWN)
+            lift = np.array([0.0, BROW_RAISE_MM, -BROW_RAISE_BACK_FRACTION * BROW_RAISE_MM])
+            total += _side_field(lift, w, s)
         elif au == "4":
-            w = _gauss(x, y, s * (a.x_eye_inner - 1.0), a.y_brow - 3.0, *BROW_LOWER_SPREAD)
+            w = _gauss(x, y, s * (a.x_eye_inner + BROW_LOWER_OFFSET[0]),
+                       a.y_brow + BROW_LOWER_OFFSET[1], *BROW_LOWER_SPREAD)
             total += _side_field(BROW_LOWER_MM, w, s)
         elif au == "12":
             w = _gauss(x, y, s * a.x_mouth, a.y_mouth, *LIP_PULL_SPREAD)
             total += _side_field(LIP_PULL_MM, w, s)
-            w = _gauss(x, y, s * (a.x_mouth + 8.0), a.y_mouth + 20.0, *CHEEK_RAISE_SPREAD)
+            w = _gauss(x, y, s * (a.x_mouth + CHEEK_RAISE_OFFSET[0]),
+                       a.y_mouth + CHEEK_RAISE_OFFSET[1], *CHEEK_RAISE_SPREAD)
             total += _side_field(CHEEK_RAISE_MM, w, s)
         elif au == "14":
             w = _gauss(x, y, s * a.x_mouth, a.y_mouth, *DIMPLER_SPREAD)
             total += _side_field(DIMPLER_MM, w, s)
-            w = _gauss(x, y, s * (a.x_mouth + 8.0), a.y_mouth - 1.0, *DIMPLE_SPREAD)
+            w = _gauss(x, y, s * (a.x_mouth + DIMPLE_OFFSET[0]), a.y_mouth + DIMPLE_OFFSET[1],
+                       *DIMPLE_SPREAD)
             total += _side_field(np.array([0.0, 0.0, -DIMPLE_DEPTH_MM]), w, s)
         elif au == "15":
-            w = _gauss(x, y, s * (a.x_mouth + 1.0), a.y_mouth - 4.0, *LIP_DEPRESS_SPREAD)
+            w = _gauss(x, y, s * (a.x_mouth + LIP_DEPRESS_OFFSET[0]),
+                       a.y_mouth + LIP_DEPRESS_OFFSET[1], *LIP_DEPRESS_SPREAD)
             total += _side_field(LIP_DEPRESS_MM, w, s)
         elif au == "17":
             # Mentalis is a paired muscle either side of the midline; each half lifts
             # the chin boss, so the two halves overlap on the midline.
-            w = _gauss(x, y, s * 5.0, a.y_chin + 2.0, *CHIN_RAISE_SPREAD)
+            w = _gauss(x, y, s * MENTALIS_HALF_SEPARATION, a.y_chin + CHIN_RAISE_ABOVE,
+                       *CHIN_RAISE_SPREAD)
             total += _side_field(0.5 * CHIN_RAISE_MM, w, s)
-            w = _gauss(x, y, s * 5.0, a.y_lower_lip, *LOWER_LIP_PUSH_SPREAD)
+            w = _gauss(x, y, s * MENTALIS_HALF_SEPARATION, a.y_lower_lip, *LOWER_LIP_PUSH_SPREAD)
             total += _side_field(0.5 * LOWER_LIP_PUSH_MM, w, s)
         elif au == "20":
-            w = _gauss(x, y, s * (a.x_mouth + 2.0), a.y_mouth - 1.0, *LIP_STRETCH_SPREAD)
+            w = _gauss(x, y, s * (a.x_mouth + LIP_STRETCH_OFFSET[0]),
+                       a.y_mouth + LIP_STRETCH_OFFSET[1], *LIP_STRETCH_SPREAD)
             total += _side_field(LIP_STRETCH_MM, w, s)
         else:  # pragma: no cover - _parse_au rejects unknown AUs first
             raise ValueError(f"unknown action unit {au!r}")

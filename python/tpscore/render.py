@@ -386,10 +386,9 @@ def render_grid(points, mask=None, **kwargs) -> np.ndarray:
     colors = kwargs.pop("colors", None)
     if colors is not None:
         colors = np.asarray(colors, dtype=np.float64)
-        grid_shape = np.shape(points)[:2]
-        if colors.shape[:2] == grid_shape:
-            colors = colors.reshape(len(vertices), -1).squeeze(axis=1) if colors.ndim == 2 \
-                else colors.reshape(len(vertices), 3)
+        if colors.shape[:2] == np.shape(points)[:2]:
+            # Per-vertex values given on the grid: flatten like the vertices.
+            colors = colors.reshape((len(vertices),) + colors.shape[2:])
     return render_mesh(vertices, faces, colors=colors, **kwargs)
 
 
@@ -461,7 +460,9 @@ def error_heatmap(vertices, faces, errors_mm, *, vmax: float | None = None, widt
     """Render per-vertex errors (mm) as colours on the shaded mesh, with a colour bar.
 
     The picture is (height, width, 3): the mesh is drawn in the left part and the
-    colour bar (range 0 to vmax, default the largest error) in the right part.
+    colour bar (range 0 to vmax, default the largest error; -vmax to vmax for the
+    "diverging" map) in the right part. A given `camera` frames the mesh part; the
+    picture is then COLORBAR_WIDTH pixels wider than the camera's.
     """
     errors = np.asarray(errors_mm, dtype=np.float64).reshape(-1)
     points = as_points(vertices, "vertices", finite=False)
