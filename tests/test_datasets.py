@@ -106,7 +106,7 @@ def test_expressive_landmarks_lie_on_the_expressive_surface(identity):
     expression = {"12": 1.0, "4": 1.0, "17": 0.8}
     points = face_landmarks(identity, expression)
     z = face_height(identity, points[:, 0], points[:, 1], expression)
-    # The height is found by inverting the skin motion to 1e-9 mm in x, y; slopes
+    # The height is found by inverting the skin motion to 1e-8 mm in x, y; slopes
     # are below 10, so z agrees to well under 1e-6 mm.
     np.testing.assert_allclose(points[:, 2], z, rtol=0, atol=1e-6)
 
