@@ -1,10 +1,12 @@
 """tpscore: thin-plate splines and radial basis functions for 3D faces.
 
 The public API lives in the submodules and is re-exported here; the compiled
-kernels in ``tpscore._core`` are private.
+kernels in ``tpscore._core`` are private. Procedural faces are in
+:mod:`tpscore.datasets` and headless rendering in :mod:`tpscore.render`.
 """
 from __future__ import annotations
 
+from . import datasets, render
 from ._core import num_threads, set_num_threads
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
 
@@ -18,4 +20,6 @@ __all__ = [
     "closest_point_on_mesh",
     "num_threads",
     "set_num_threads",
+    "datasets",
+    "render",
 ]
