@@ -419,8 +419,8 @@ def _parse_float(text: str) -> float:
 def _read_landmarks_csv(path) -> np.ndarray:
     where = repr(str(path))
     rows = list(csv.reader(_stdio.StringIO("\n".join(_read_text(path)))))
-    numbered = [(i, [cell.strip() for cell in row]) for i, row in enumerate(rows)
-                if any(cell.strip() for cell in row)]
+    # A blank line is no row; ",," is a row of empty cells (a missing landmark).
+    numbered = [(i, [cell.strip() for cell in row]) for i, row in enumerate(rows) if row]
     if not numbered:
         raise ValueError(f"{where}: no landmarks in the CSV file")
 
@@ -438,13 +438,14 @@ def _read_landmarks_csv(path) -> np.ndarray:
         except ValueError:
             return False
 
-    first_line, first = numbered[0]
-    if not is_name(first[0]) and not all(is_number(cell) for cell in first):
+    first = numbered[0][1]
+    if not is_name(first[0]) and not any(is_number(cell) and cell for cell in first):
         numbered = numbered[1:]  # a header such as "name,x,y,z" or "x,y,z"
     if not numbered:
         raise ValueError(f"{where}: CSV file has a header but no landmarks")
     landmarks = empty_landmarks()
-    named = is_name(numbered[0][1][0])
+    # Rows start with a name unless the first cell is a number (or empty: missing).
+    named = not is_number(numbered[0][1][0])
     if not named and len(numbered) != N_LANDMARKS:
         raise ValueError(
             f"{where}: a CSV of unnamed x,y,z rows must have {N_LANDMARKS} rows in Bosphorus "
