@@ -59,13 +59,15 @@ DEFAULT_MAX_GAP_MM = 3.0
 LANDMARK_SNAP_WARNING_MM = 10.0
 
 # A source grid counts as regular when every valid x (y) lies within this fraction of
-# the spacing of x0 + c * sx (y0 + r * sy). Scanner depth images are exact lattices;
-# anything less regular goes the Delaunay way, which makes no such assumption.
-_LATTICE_TOLERANCE = 1e-6
+# the spacing of x0 + c * sx (y0 + r * sy). Scanner depth images are exact lattices up
+# to rounding (float32 files round by ~1e-5 of a 0.7 mm spacing at 100 mm); treating
+# them as exact moves a point by at most 1e-4 spacing, far below scanner noise.
+# Anything less regular goes the Delaunay way, which makes no such assumption.
+_LATTICE_TOLERANCE = 1e-4
 
 # In the unstructured path a Delaunay triangle is always kept when its longest edge is
-# at most this many times the median nearest-neighbour spacing: irregular sampling has
-# gaps of about twice its median spacing that are not holes.
+# at most this many times the median Delaunay edge: irregular (even random) sampling
+# has edges up to about twice the median that do not span holes.
 _UNSTRUCTURED_EDGE_FACTOR = 3.0
 
 
@@ -271,8 +273,8 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
     source grid each missing source point whose nearest valid neighbours along its
     row (or column) are at most `max_gap_mm` apart gets z interpolated linearly between
     them (both directions averaged, weighted by 1 / span); in the unstructured path
-    Delaunay triangles whose longest edge exceeds ``max(max_gap_mm, 3 * median point
-    spacing)`` are dropped. Gaps wider than `max_gap_mm`, and everything outside the
+    Delaunay triangles whose longest edge exceeds ``max(max_gap_mm, 3 * median
+    Delaunay edge)`` are dropped. Gaps wider than `max_gap_mm`, and everything outside the
     data, stay invalid. ``max_gap_mm=0`` bridges nothing beyond the sampling itself.
 
     Landmarks: each finite landmark is snapped to the nearest valid grid vertex
@@ -607,33 +609,54 @@ def _resample_lattice(grid, valid, source_uv, lattice, xs, ys, max_gap_mm):
                   np.where(lower, v, 1 - u), np.where(lower, 0.0, u + v - 1))
 
     def usable(weights):
-        # A corner with zero weight (the point is on the opposite edge) need not be valid.
+        # A corner with (up to rounding) zero weight need not be valid: the point is on
+        # the opposite edge, for example on the outline of the data.
         ok = np.ones(a.shape, dtype=bool)
         for w, ok_corner in zip(weights, corner_valid):
-            ok &= (w <= 0) | ok_corner
+            ok &= (w <= _LATTICE_TOLERANCE) | ok_corner
         return ok
 
     use_ad = usable(weights_ad)
     use_bc = ~use_ad & usable(weights_bc)
     mask = (use_ad | use_bc) & row_in[:, None] & col_in[None, :]
     z_out = np.zeros(a.shape)
-    for w_ad, w_bc, k in zip(weights_ad, weights_bc, corners):
-        z_out += np.where(use_ad, w_ad, w_bc) * z_flat[k]
+    weight_sum = np.zeros(a.shape)
+    weights = []
+    for w_ad, w_bc, k, ok_corner in zip(weights_ad, weights_bc, corners, corner_valid):
+        # Invalid corners carry at most a rounding-sized weight: drop it and renormalise.
+        w = np.where(ok_corner, np.where(use_ad, w_ad, w_bc), 0.0)
+        z_out += w * z_flat[k]
+        weight_sum += w
+        weights.append(w)
+    z_out[mask] /= weight_sum[mask]
     z_out[~mask] = np.nan
 
     grid_uv = None
-    if source_uv is not None and np.isfinite(source_uv).all():
-        # u,v are defined at every source pixel (also background), so interpolate them
-        # bilinearly over the whole cell: exact for the affine u,v of a depth image.
+    if source_uv is not None:
         uv_flat = source_uv.reshape(-1, 2)
-        bilinear = ((1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v)
-        grid_uv = sum(w[..., None] * uv_flat[k] for w, k in zip(bilinear, corners))
+        if np.isfinite(uv_flat).all():
+            # u,v known at every source pixel (a .bnt has them at background too):
+            # bilinear over the whole cell, exact for the affine u,v of a depth image.
+            weights = ((1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v)
+            grid_uv = sum(w[..., None] * uv_flat[k] for w, k in zip(weights, corners))
+        else:
+            # u,v only at some points: the z weights over the corners that have them.
+            known = np.isfinite(uv_flat).all(axis=1)
+            safe_uv = np.where(known[:, None], uv_flat, 0.0)
+            total, uv_sum = np.zeros(a.shape), np.zeros(a.shape + (2,))
+            for w, k in zip(weights, corners):
+                w = np.where(known[k], w, 0.0)
+                uv_sum += w[..., None] * safe_uv[k]
+                total += w
+            grid_uv = _default_uv(*a.shape)
+            has = total > 0
+            grid_uv[has] = uv_sum[has] / total[has][:, None]
     return z_out, mask, grid_uv
 
 
 def _resample_delaunay(cloud, cloud_uv, xs, ys, max_gap_mm):
     """z, mask and u,v on the target axes from scattered points (see resample_scan)."""
-    from scipy.spatial import Delaunay, QhullError, cKDTree
+    from scipy.spatial import Delaunay, QhullError
 
     xy = np.ascontiguousarray(cloud[:, :2])
     try:
@@ -651,11 +674,10 @@ def _resample_delaunay(cloud, cloud_uv, xs, ys, max_gap_mm):
     simplex = triangulation.find_simplex(targets)
 
     # Drop triangles that bridge gaps wider than the sampling and max_gap_mm allow.
-    distances, _ = cKDTree(xy).query(xy, k=2)
-    spacing = float(np.median(distances[:, 1]))
     corners = xy[triangulation.simplices]
-    longest = np.linalg.norm(corners - corners[:, [1, 2, 0]], axis=2).max(axis=1)
-    allowed = longest <= max(max_gap_mm, _UNSTRUCTURED_EDGE_FACTOR * spacing)
+    edges = np.linalg.norm(corners - corners[:, [1, 2, 0]], axis=2)
+    spacing = float(np.median(edges))
+    allowed = edges.max(axis=1) <= max(max_gap_mm, _UNSTRUCTURED_EDGE_FACTOR * spacing)
     found = simplex >= 0
     found[found] = allowed[simplex[found]]
 
