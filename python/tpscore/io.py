@@ -123,7 +123,8 @@ def _format_float(value: float) -> str:
 
 # --------------------------------------------------------------------------- .bnt
 
-@dataclass
+# eq=False: element-wise array comparison has no single truth value.
+@dataclass(eq=False)
 class BntScan:
     """A Bosphorus depth scan: a grid of nrows x ncols points, row 0 the top.
 

@@ -92,7 +92,8 @@ class GridMesh(NamedTuple):
     grid_index: np.ndarray
 
 
-@dataclass
+# eq=False: element-wise array comparison has no single truth value.
+@dataclass(eq=False)
 class FaceGrid:
     """A face as a regular H x W grid of vertices with a validity mask and landmarks.
 
@@ -459,7 +460,9 @@ def _fit_line(index: np.ndarray, values: np.ndarray):
         return None
     mean_index, mean_value = index.mean(), values.mean()
     centred = index - mean_index
-    step = float(np.dot(centred, values - mean_value) / np.dot(centred, centred))
+    # einsum rather than np.dot: a BLAS call may wake a thread pool, which on a busy
+    # machine costs tens of milliseconds for this microsecond sum.
+    step = float(np.einsum("i,i->", centred, values - mean_value) / np.einsum("i,i->", centred, centred))
     origin = float(mean_value - step * mean_index)
     if step == 0.0:
         return None
@@ -637,8 +640,12 @@ def _resample_lattice(grid, valid, source_uv, lattice, xs, ys, max_gap_mm):
         if np.isfinite(uv_flat).all():
             # u,v known at every source pixel (a .bnt has them at background too):
             # bilinear over the whole cell, exact for the affine u,v of a depth image.
-            weights = ((1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v)
-            grid_uv = sum(w[..., None] * uv_flat[k] for w, k in zip(weights, corners))
+            # One contiguous channel at a time keeps the gathers cheap.
+            bilinear = ((1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v)
+            grid_uv = np.empty(a.shape + (2,))
+            for channel in range(2):
+                values = np.ascontiguousarray(uv_flat[:, channel])
+                grid_uv[..., channel] = sum(w * values[k] for w, k in zip(bilinear, corners))
         else:
             # u,v only at some points: the z weights over the corners that have them.
             known = np.isfinite(uv_flat).all(axis=1)
@@ -707,13 +714,19 @@ def _snap_landmarks(vertices: np.ndarray, mask: np.ndarray, landmarks):
         return snapped, index
     if len(candidates) == 0:
         raise ValueError("cannot snap landmarks: the grid has no valid vertex")
-    # Brute force over the valid vertices: |v|^2 - 2 v.l (+ |l|^2, the same for every
-    # vertex) as one matrix product, a fraction of a millisecond for 22 x 22500.
-    # Its rounding (~1e-12 mm^2 at face scale) can only swap exact ties.
+    # Brute force over the valid vertices, one coordinate at a time on a (landmarks,
+    # vertices) array: exact, and no BLAS call (whose thread pool can cost more than
+    # the arithmetic on a busy machine).
     valid_vertices = vertices[candidates]
     targets = landmarks[present]
-    score = np.einsum("ij,ij->i", valid_vertices, valid_vertices)[None, :] - 2.0 * (targets @ valid_vertices.T)
-    nearest = score.argmin(axis=1)
+    squared = np.subtract(valid_vertices[None, :, 0], targets[:, 0:1])
+    squared *= squared
+    scratch = np.empty_like(squared)
+    for axis in (1, 2):
+        np.subtract(valid_vertices[None, :, axis], targets[:, axis:axis + 1], out=scratch)
+        scratch *= scratch
+        squared += scratch
+    nearest = squared.argmin(axis=1)
     index[present] = candidates[nearest]
     snapped[present] = vertices[index[present]]
     distance = np.linalg.norm(snapped[present] - targets, axis=1)
