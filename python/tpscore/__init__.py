@@ -8,11 +8,24 @@ from __future__ import annotations
 
 from . import datasets, render
 from ._core import num_threads, set_num_threads
+from .io import (
+    BntScan,
+    read_bnt,
+    read_landmarks,
+    read_lm3,
+    read_mesh,
+    write_bnt,
+    write_landmarks,
+    write_lm3,
+    write_mesh,
+)
+from .preprocess import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, resample_scan
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
 
 __version__ = "0.1.0"
 
 __all__ = [
+    # kernels
     "ClosestPoints",
     "KDTree",
     "MeshSurface",
@@ -20,6 +33,23 @@ __all__ = [
     "closest_point_on_mesh",
     "num_threads",
     "set_num_threads",
+    # scan and mesh files
+    "BntScan",
+    "read_bnt",
+    "write_bnt",
+    "read_lm3",
+    "write_lm3",
+    "read_landmarks",
+    "write_landmarks",
+    "read_mesh",
+    "write_mesh",
+    # preprocessing
+    "FaceGrid",
+    "GridMesh",
+    "LandmarkSnapWarning",
+    "resample_scan",
+    "load_scan",
+    # submodules
     "datasets",
     "render",
 ]
