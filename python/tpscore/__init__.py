@@ -6,10 +6,14 @@ kernels in ``tpscore._core`` are private.
 from __future__ import annotations
 
 from ._core import num_threads, set_num_threads
+from .rbf import RBF, RBF_KERNELS, TPS
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "RBF",
+    "RBF_KERNELS",
+    "TPS",
     "num_threads",
     "set_num_threads",
 ]
