@@ -263,6 +263,14 @@ RbfModel rbf_fit(const PointsRef& centres, const MatrixRef& values, RbfKernel ke
             column[n + 3] = cz[i];
         }
     });
+    // Equilibrate: scale the polynomial columns and rows [1 x y z] to the size of the
+    // kernel block. Large smoothing makes that block ~lambda' I, and without this the
+    // matrix is badly scaled (rcond ~ 1 / lambda'^2) while the problem itself is not:
+    // the rcond test below would then refuse a perfectly good fit. With the scaling,
+    // the unknowns are [W; A / polynomial_scale].
+    double polynomial_scale = system.topLeftCorner(n, n).cwiseAbs().maxCoeff();
+    if (!(polynomial_scale > 0.0) || !std::isfinite(polynomial_scale)) polynomial_scale = 1.0;
+    system.bottomLeftCorner(4, n) *= polynomial_scale;
     system.topRightCorner(n, 4) = system.bottomLeftCorner(4, n).transpose();
     system.bottomRightCorner(4, 4).setZero();
 
@@ -294,7 +302,7 @@ RbfModel rbf_fit(const PointsRef& centres, const MatrixRef& values, RbfKernel ke
         throw std::domain_error("the RBF system could not be solved: the solution is not finite");
 
     model.weights_normalised = solution.topRows(n);
-    model.affine_normalised = solution.bottomRows(4);
+    model.affine_normalised = polynomial_scale * solution.bottomRows(4);
     const Eigen::MatrixXd& w = model.weights_normalised;
 
     // trace(W^T K W) = trace(W'^T K' W') / g (the tps term drops out: P^T W' = 0).
