@@ -235,7 +235,9 @@ class RBF:
             f at each point (k columns even when the values were 1-D).
         """
         queries = as_points(points, "points")
-        return self._model.evaluate(queries)
+        result = np.empty((len(queries), self._n_values))
+        self._model.evaluate_into(queries, result)
+        return result
 
     def displacement(self, points) -> np.ndarray:
         """Evaluate the displacement f(x) - x at query points (3 values only).
@@ -258,7 +260,9 @@ class RBF:
                 f"displacement needs values with 3 columns (a map of 3D points), "
                 f"this RBF has {self._n_values}")
         queries = as_points(points, "points")
-        return self._model.displacement(queries)
+        result = np.empty((len(queries), 3))
+        self._model.displacement_into(queries, result)
+        return result
 
     def evaluation_matrix(self, points) -> np.ndarray:
         """The matrix E with ``E @ coefficients == f(points)``.

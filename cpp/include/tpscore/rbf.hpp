@@ -99,9 +99,14 @@ struct RbfModel {
 RbfModel rbf_fit(const PointsRef& centres, const MatrixRef& values, RbfKernel kernel,
                  double epsilon, double smoothing);
 
-/// f at each row of `queries` (m, 3): returns (m, k). With `displacement`, returns
-/// f(x) - x instead (requires k == 3). Forms no (m, n) temporary; threaded over
-/// blocks of query rows; the result does not depend on the thread count.
+/// Writes f at each row of `queries` (m, 3) into `out` (m, k). With `displacement`,
+/// writes f(x) - x instead (requires k == 3). Forms no (m, n) temporary; threaded
+/// over blocks of query rows; the result does not depend on the thread count.
+/// The caller allocates `out` (Python passes a NumPy array: see the binding).
+void rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool displacement,
+                  Eigen::Ref<MatrixX> out);
+
+/// As above, returning a new (m, k) matrix.
 MatrixX rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool displacement);
 
 /// The (m, n + 4) evaluation matrix E = [phi(|x - p_j|) | 1 x y z] in original
