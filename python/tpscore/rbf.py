@@ -351,8 +351,10 @@ class RBF:
         """Estimated 1-norm condition number of the solved (normalised) system.
 
         The reciprocal of the LU's ``rcond`` estimate for the saddle-point matrix in
-        the centred and scaled coordinates the fit uses (not of the system in the
-        original coordinates, which is usually far worse conditioned).
+        the centred and scaled coordinates the fit uses, with the [1 x y z] rows and
+        columns scaled to the kernel block (not of the system in the original
+        coordinates, which is usually far worse conditioned). A fit whose estimate
+        exceeds 1 / machine epsilon is refused as numerically singular.
         """
         return 1.0 / self._model.rcond
 

@@ -66,7 +66,8 @@ struct RbfModel {
     /// it is <= 0 (their kernels are conditionally negative definite).
     double bending_energy = 0.0;
     /// Eigen's PartialPivLU::rcond(): an estimate of the reciprocal of the 1-norm
-    /// condition number of the normalised saddle-point matrix.
+    /// condition number of the saddle-point matrix that was factorised (normalised
+    /// coordinates, polynomial rows and columns scaled to the kernel block).
     double rcond = 0.0;
 
     // --- the normalised form that evaluation uses --------------------------------
