@@ -20,12 +20,16 @@ from .io import (
     write_mesh,
 )
 from .preprocess import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, resample_scan
+from .rbf import RBF, RBF_KERNELS, TPS
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
 
 __version__ = "0.1.0"
 
 __all__ = [
     # kernels
+    "RBF",
+    "RBF_KERNELS",
+    "TPS",
     "ClosestPoints",
     "KDTree",
     "MeshSurface",
