@@ -8,6 +8,19 @@ from __future__ import annotations
 
 from . import datasets, render
 from ._core import num_threads, set_num_threads
+from .action_units import ActionUnit, ActionUnitLibrary, ControlPoint, default_library
+from .average_face import AverageFace, build_average_face, load_average_face
+from .expression_transfer import (
+    Animation,
+    ExpressionModel,
+    NormalisedFace,
+    TransferOptions,
+    TransferResult,
+    animate,
+    model_expression,
+    normalise_face,
+    transfer,
+)
 from .io import (
     BntScan,
     read_bnt,
@@ -20,6 +33,7 @@ from .io import (
     write_mesh,
 )
 from .preprocess import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, resample_scan
+from .normalise import FrameTransform, similarity_transform, thesis_affine_transform
 from .rbf import RBF, RBF_KERNELS, TPS
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
 
@@ -53,6 +67,26 @@ __all__ = [
     "LandmarkSnapWarning",
     "resample_scan",
     "load_scan",
+    # expression transfer
+    "ActionUnit",
+    "ActionUnitLibrary",
+    "ControlPoint",
+    "default_library",
+    "AverageFace",
+    "build_average_face",
+    "load_average_face",
+    "FrameTransform",
+    "similarity_transform",
+    "thesis_affine_transform",
+    "NormalisedFace",
+    "normalise_face",
+    "TransferOptions",
+    "ExpressionModel",
+    "model_expression",
+    "Animation",
+    "animate",
+    "TransferResult",
+    "transfer",
     # submodules
     "datasets",
     "render",

@@ -32,6 +32,7 @@ from .landmarks import LANDMARK_NAMES, N_LANDMARKS, empty_landmarks, landmark_in
 
 __all__ = [
     "BntScan",
+    "write_npz",
     "read_bnt",
     "write_bnt",
     "read_lm3",
@@ -151,6 +152,20 @@ class BntScan:
     points: np.ndarray
     uv: np.ndarray
     valid: np.ndarray
+
+    @classmethod
+    def from_points(cls, points, *, image_name: str = "", zmin: float = DEFAULT_BNT_ZMIN) -> "BntScan":
+        """A scan from (nrows, ncols, 3) points with NaN at background and holes; u, v are
+        the pixel centres ((c + 0.5) / ncols, (r + 0.5) / nrows)."""
+        points = np.array(points, dtype=np.float64)
+        if points.ndim != 3 or points.shape[2] != 3:
+            raise ValueError(f"points must have shape (nrows, ncols, 3), got {points.shape}")
+        nrows, ncols = points.shape[:2]
+        valid = np.isfinite(points).all(axis=2)
+        points[~valid] = np.nan
+        rows, cols = np.mgrid[0:nrows, 0:ncols]
+        uv = np.stack([(cols + 0.5) / ncols, (rows + 0.5) / nrows], axis=-1)
+        return cls(nrows, ncols, float(zmin), image_name, points, uv, valid)
 
     @property
     def n_valid(self) -> int:
@@ -748,3 +763,12 @@ def _ply_bytes(vertices, faces, uv, colors) -> bytes:
     face_table["count"] = 3
     face_table["indices"] = faces
     return ("\n".join(header) + "\n").encode("ascii") + table.tobytes() + face_table.tobytes()
+
+
+def write_npz(path, **arrays) -> None:
+    """Write arrays to a compressed ``.npz`` (atomically, like every writer here)."""
+    import io as _bytes_io
+
+    buffer = _bytes_io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    _atomic_write(path, buffer.getvalue())

@@ -13,7 +13,12 @@ __all__ = [
     "landmark_index",
     "MIRROR_LANDMARK",
     "empty_landmarks",
+    "landmark_map",
+    "MIN_LANDMARKS",
 ]
+
+#: A 3D TPS with an affine part needs five landmark pairs that are not coplanar.
+MIN_LANDMARKS = 5
 
 #: The 22 Bosphorus landmark names, in Bosphorus order.
 LANDMARK_NAMES: tuple[str, ...] = (
@@ -70,3 +75,49 @@ MIRROR_LANDMARK: tuple[int, ...] = tuple(landmark_index(_mirror(n)) for n in LAN
 def empty_landmarks() -> np.ndarray:
     """A (22, 3) array of NaN: every landmark missing."""
     return np.full((N_LANDMARKS, 3), np.nan)
+
+
+# Landmarks closer than this are the same point whatever merge distance is asked for:
+# two TPS centres at one place would have to map to two places at once.
+_COINCIDENT_MM = 1e-6
+
+
+def _merge_close(lm: np.ndarray, other: np.ndarray, merge_mm: float):
+    """Pairs present in both sets; pairs closer than merge_mm in either set are merged
+    into their mean (transitively), so no two TPS centres nearly coincide."""
+    use = np.flatnonzero(np.isfinite(lm).all(axis=1) & np.isfinite(other).all(axis=1))
+    a, b = lm[use], other[use]
+    if len(a) < 2:
+        return a, b
+    limit = max(merge_mm, _COINCIDENT_MM)
+    close = ((np.linalg.norm(a[:, None] - a[None], axis=2) < limit)
+             | (np.linalg.norm(b[:, None] - b[None], axis=2) < limit))
+    group = np.arange(len(a))
+    for i, j in zip(*np.nonzero(np.triu(close, 1))):
+        group[group == group[j]] = group[i]
+    labels = np.unique(group)
+    merged_a = np.array([a[group == g].mean(axis=0) for g in labels])
+    merged_b = np.array([b[group == g].mean(axis=0) for g in labels])
+    return merged_a, merged_b
+
+
+def landmark_map(from_landmarks, to_landmarks, *, smoothing: float = 0.0,
+                 merge_mm: float = 0.0, what: str = "landmark map") -> TPS:
+    """The TPS taking one face's landmarks onto another's, over the landmarks both have.
+
+    Raises a ValueError that says how many landmarks remain when fewer than five are
+    present in both faces (a 3D TPS needs five non-coplanar pairs).
+    """
+    from .rbf import TPS  # the kernels import this module; import them late
+
+    a = np.asarray(from_landmarks, dtype=np.float64)
+    b = np.asarray(to_landmarks, dtype=np.float64)
+    if a.shape != (N_LANDMARKS, 3) or b.shape != (N_LANDMARKS, 3):
+        raise ValueError(f"{what}: landmarks must have shape ({N_LANDMARKS}, 3)")
+    src, dst = _merge_close(a, b, merge_mm)
+    if len(src) < MIN_LANDMARKS:
+        raise ValueError(
+            f"{what}: only {len(src)} landmark(s) are present in both faces; "
+            f"at least {MIN_LANDMARKS} are needed"
+        )
+    return TPS(src, dst, smoothing=smoothing)

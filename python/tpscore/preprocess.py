@@ -207,6 +207,20 @@ class FaceGrid:
             grid_index=grid_index,
         )
 
+    @classmethod
+    def from_points(cls, points, mask=None, landmarks=None) -> "FaceGrid":
+        """A grid from (H, W, 3) points (NaN or `mask` False where invalid), with the
+        default u,v map and `landmarks` (22, 3; NaN rows missing) snapped to it."""
+        points = np.array(points, dtype=np.float64)
+        if points.ndim != 3 or points.shape[2] != 3:
+            raise ValueError(f"points must have shape (H, W, 3), got {points.shape}")
+        valid = np.isfinite(points).all(axis=2)
+        if mask is not None:
+            valid &= np.asarray(mask, dtype=bool)
+        landmarks = empty_landmarks() if landmarks is None else landmarks
+        snapped, index = _snap_landmarks(points.reshape(-1, 3), valid.reshape(-1), landmarks)
+        return cls(points, valid, _default_uv(*valid.shape), snapped, index)
+
     def copy(self) -> "FaceGrid":
         """A deep copy."""
         return FaceGrid(self.points.copy(), self.mask.copy(), self.uv.copy(),

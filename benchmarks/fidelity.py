@@ -1,0 +1,199 @@
+"""Fidelity benchmark of expression transfer on synthetic Bosphorus-format scans.
+
+Generates development subjects with ../shared/tools/make_scans.py (cached under
+bench-output/scans), transfers each AU from a source subject to other target
+subjects, scores each prediction with ../shared/tools/score_transfer.py, and writes
+the per-AU table for each pipeline variant to bench-output/fidelity.md (and .json).
+
+    python benchmarks/fidelity.py [--subjects 0-19] [--offsets 1 2] [--variants noop thesis default]
+
+Skips (exit 0 with a message) when ../shared is absent.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+import time
+import warnings
+from collections import defaultdict
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+AU_CODES = {"1": "UFAU_1_0", "2": "UFAU_2_0", "4": "UFAU_4_0", "12": "LFAU_12_0",
+            "12L": "LFAU_12L_0", "14": "LFAU_14_0", "15": "LFAU_15_0", "17": "LFAU_17_0",
+            "20": "LFAU_20_0"}
+
+
+def shared_dir() -> Path | None:
+    env = os.environ.get("TPSCORE_SHARED")
+    for path in ([Path(env)] if env else []) + [ROOT.parent / "shared"]:
+        if (path / "tools" / "score_transfer.py").is_file():
+            return path
+    return None
+
+
+def load_module(path: Path, name: str):
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def parse_subjects(text: str) -> list[int]:
+    out = []
+    for part in text.split(","):
+        a, _, b = part.partition("-")
+        out += list(range(int(a), int(b) + 1)) if b else [int(a)]
+    return out
+
+
+def ensure_scans(shared: Path, out: Path, subjects: list[int]) -> None:
+    missing = [s for s in subjects
+               if not (out / f"bs{s:03d}" / f"bs{s:03d}_LFAU_20_0_gt.npz").is_file()]
+    if missing:
+        print(f"generating scans of subjects {missing} ...", flush=True)
+        subprocess.run([sys.executable, str(shared / "tools" / "make_scans.py"), str(out),
+                        "--subjects", *map(str, missing)], check=True, stdout=subprocess.DEVNULL)
+
+
+def scan_path(out: Path, subject: int, code: str) -> Path:
+    return out / f"bs{subject:03d}" / f"bs{subject:03d}_{code}"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--subjects", default="0-19")
+    ap.add_argument("--offsets", type=int, nargs="+", default=[1, 2],
+                    help="target = (source + offset) mod n for each offset: n pairs per offset")
+    ap.add_argument("--aus", nargs="+", default=list(AU_CODES))
+    ap.add_argument("--variants", nargs="+", default=["noop", "thesis", "default"],
+                    help="noop, thesis, default, or an ablation: thesis+similarity, "
+                         "thesis+surface-snap, thesis+merge-landmarks, thesis+anchors, "
+                         "default-hard-seam, default-no-anchors")
+    ap.add_argument("--out", default=str(ROOT / "bench-output"))
+    args = ap.parse_args(argv)
+
+    shared = shared_dir()
+    if shared is None:
+        print("fidelity benchmark skipped: ../shared (make_scans.py, score_transfer.py) not found")
+        return 0
+    import tpscore
+    from tpscore.expression_transfer import TransferOptions
+
+    scorer = load_module(shared / "tools" / "score_transfer.py", "score_transfer")
+    faces = np.load(shared / "data" / "ict-facekit" / "face_model.npz")["faces"]
+    out = Path(args.out)
+    scans = out / "scans"
+    subjects = parse_subjects(args.subjects)
+    ensure_scans(shared, scans, subjects)
+
+    thesis = TransferOptions.thesis()
+    variants = {
+        "thesis": thesis,
+        # each of the defaults' departures from the method, added on its own
+        "thesis+similarity": replace(thesis, normalisation="similarity"),
+        "thesis+surface-snap": replace(thesis, snap="surface"),
+        "thesis+merge-landmarks": replace(thesis, merge_landmarks_mm=TransferOptions().merge_landmarks_mm),
+        "thesis+anchors": replace(thesis, anchors=True),
+        "default-hard-seam": replace(TransferOptions(), transition_mm=0.0),
+        "default-no-anchors": replace(TransferOptions(), anchors=False),
+        "default": TransferOptions(),
+    }
+    for name in args.variants:
+        if name not in variants and name != "noop":
+            raise SystemExit(f"unknown variant {name!r}")
+
+    grids = {}
+
+    def grid(subject, code):
+        key = (subject, code)
+        if key not in grids:
+            t0 = time.perf_counter()
+            grids[key] = tpscore.load_scan(str(scan_path(scans, subject, code)) + ".bnt")
+            timings["load+resample"].append(time.perf_counter() - t0)
+        return grids[key]
+
+    timings = defaultdict(list)
+    results = defaultdict(list)  # (variant, au) -> list of score dicts
+    n = len(subjects)
+    for au in args.aus:
+        code = AU_CODES[au]
+        for offset in args.offsets:
+            for i, source in enumerate(subjects):
+                target = subjects[(i + offset) % n]
+                a_gt = str(scan_path(scans, target, "N_N_0")) + "_gt.npz"
+                b_gt = str(scan_path(scans, target, code)) + "_gt.npz"
+                tgt = grid(target, "N_N_0")
+                for variant in args.variants:
+                    if variant == "noop":
+                        neutral = np.where(tgt.mask[..., None], tgt.points, np.nan)
+                        pred, mask = neutral, tgt.mask
+                    else:
+                        t0 = time.perf_counter()
+                        try:
+                            with warnings.catch_warnings():
+                                warnings.simplefilter("ignore")  # missing landmarks are expected here
+                                res = tpscore.transfer(grid(source, "N_N_0"), grid(source, code), tgt, au,
+                                                       options=variants[variant])
+                            pred, neutral, mask = res.vertices, res.neutral, res.mask
+                            for stage, seconds in res.timings.items():
+                                timings[f"{variant}: {stage}"].append(seconds)
+                        except ValueError as exc:
+                            print(f"  {variant} AU{au} {source}->{target}: {exc}", flush=True)
+                            neutral = np.where(tgt.mask[..., None], tgt.points, np.nan)
+                            pred, mask = np.full_like(neutral, np.nan), tgt.mask
+                        timings[f"transfer ({variant})"].append(time.perf_counter() - t0)
+                    score = scorer.score(pred, neutral, a_gt, b_gt, faces, mask=mask)
+                    score.update(source=source, target=target)
+                    results[(variant, au)].append(score)
+        line = "  ".join(
+            f"{v}: {np.mean([r['residual_ratio'] for r in results[(v, au)]]):.3f}" for v in args.variants)
+        print(f"AU{au:4s} {line}", flush=True)
+
+    rows = []
+    for variant in args.variants:
+        for au in args.aus:
+            rs = results[(variant, au)]
+            ratio = np.array([r["residual_ratio"] for r in rs])
+            rows.append(dict(
+                variant=variant, au=au, pairs=len(rs),
+                mean_ratio=float(np.nanmean(ratio)), median_ratio=float(np.nanmedian(ratio)),
+                worst_ratio=float(np.nanmax(ratio)),
+                rms_mm=float(np.nanmean([r["rms_mm"] for r in rs])),
+                leak_mm=float(np.nanmean([r["leak_rms_mm"] for r in rs])),
+                pred_missing=int(sum(r["n_pred_missing"] for r in rs))))
+    lines = ["| variant | AU | pairs | mean ratio | median ratio | worst ratio | rms mm | leak mm | pred missing |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['variant']} | {r['au']} | {r['pairs']} | {r['mean_ratio']:.3f} | "
+                     f"{r['median_ratio']:.3f} | {r['worst_ratio']:.3f} | {r['rms_mm']:.3f} | "
+                     f"{r['leak_mm']:.3f} | {r['pred_missing']} |")
+    lines.append("")
+    lines.append("| variant | mean ratio over AUs | mean leak mm |")
+    lines.append("|---|---:|---:|")
+    for variant in args.variants:
+        vr = [r for r in rows if r["variant"] == variant]
+        lines.append(f"| {variant} | {np.mean([r['mean_ratio'] for r in vr]):.3f} | "
+                     f"{np.mean([r['leak_mm'] for r in vr]):.3f} |")
+    lines.append("")
+    lines.append("| stage | mean time per call |")
+    lines.append("|---|---:|")
+    for stage, ts in timings.items():
+        lines.append(f"| {stage} | {1e3 * np.mean(ts):.1f} ms |")
+    table = "\n".join(lines)
+    print(table)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "fidelity.md").write_text(table + "\n")
+    (out / "fidelity.json").write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

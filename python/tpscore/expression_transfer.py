@@ -1,0 +1,483 @@
+"""Expression transfer: model an AU on a source person, animate it on a target person.
+
+The method (see DESIGN.md, method 1):
+
+1. Every face is resampled onto a grid (:mod:`tpscore.preprocess`) and brought into the
+   reference face's frame (:mod:`tpscore.normalise`).
+2. The AU's control points, defined once on the reference face
+   (:mod:`tpscore.action_units`), are mapped onto the neutral source with the landmark
+   TPS (reference landmarks -> source landmarks) and snapped onto its surface.
+3. *Modelling*: the landmark TPS from the source's neutral to its expressive landmarks
+   carries them onto the expressive scan, where they are snapped again; their motion is
+   v_i = P'_i - P_i.
+4. *Animation*: the points are mapped from the neutral source to the neutral target
+   (landmark TPS + snap) and moved by v_i * m * (s_t / s_s) in the lower face (s: mouth
+   width) or v_i * m in the upper face; each region of the target is warped with the
+   TPS from the points to their moved positions.
+
+Because the TPS is linear in its targets, the warp for magnitude m is x + m d(x): each
+AU's displacement field d is computed once, and a frame of an animation is a scaled
+add of precomputed fields (:class:`Animation`).
+
+:class:`TransferOptions` switches between the method as published
+(:meth:`TransferOptions.thesis`) and the defaults, which measured better on the
+fidelity benchmark (README): surface snapping instead of nearest-vertex snapping,
+similarity normalisation, zero-motion anchor points in the region, and a smooth region
+boundary.
+"""
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field, replace
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from .action_units import ActionUnit, ActionUnitLibrary, Activation, default_library
+from .landmarks import landmark_index, landmark_map
+from .normalise import FrameTransform, landmark_transform
+from .preprocess import FaceGrid
+from .rbf import TPS
+from .regions import region_weight
+from .spatial import KDTree, MeshSurface
+
+__all__ = [
+    "TransferOptions",
+    "NormalisedFace",
+    "normalise_face",
+    "place_control_points",
+    "ControlPointMotion",
+    "ExpressionModel",
+    "model_expression",
+    "Animation",
+    "animate",
+    "TransferResult",
+    "transfer",
+    "mouth_width",
+]
+
+
+
+@dataclass(frozen=True)
+class TransferOptions:
+    """Choices of the transfer pipeline. Defaults are the best measured variant.
+
+    Attributes
+    ----------
+    normalisation : {"similarity", "affine"}
+        Pose/size normalisation to the reference (see :mod:`tpscore.normalise`).
+    snap : {"surface", "vertex"}
+        Snap mapped control points to the closest point of the surface, or to the
+        nearest grid vertex (the method as published).
+    anchors : bool
+        Add zero-motion anchor points to each AU's warp: the region's landmarks and a
+        lattice of surface points farther than ``anchor_distance_mm`` from every
+        control point of the AU. Without anchors the TPS's affine part may move the
+        whole region.
+    anchor_distance_mm, anchor_spacing_mm : float
+        Clearance around the control points, and the lattice spacing of the anchors.
+    transition_mm : float
+        Width of the smooth blend across the upper/lower boundary (0 = hard seam).
+    landmark_smoothing : float
+        Smoothing lambda of the landmark TPS maps (0 = interpolate the landmarks).
+    merge_landmarks_mm : float
+        Landmarks of one face closer than this are merged (their mean) before a
+        landmark TPS: the inner-lip landmarks of a closed mouth nearly coincide and
+        otherwise make the map fold.
+    """
+
+    normalisation: str = "similarity"
+    snap: str = "surface"
+    anchors: bool = True
+    anchor_distance_mm: float = 18.0
+    anchor_spacing_mm: float = 12.0
+    transition_mm: float = 10.0
+    landmark_smoothing: float = 0.0
+    merge_landmarks_mm: float = 3.0
+
+    def __post_init__(self):
+        if self.normalisation not in ("similarity", "affine"):
+            raise ValueError(f"normalisation must be 'similarity' or 'affine', got {self.normalisation!r}")
+        if self.snap not in ("surface", "vertex"):
+            raise ValueError(f"snap must be 'surface' or 'vertex', got {self.snap!r}")
+        for name in ("anchor_distance_mm", "anchor_spacing_mm", "transition_mm",
+                     "landmark_smoothing", "merge_landmarks_mm"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value < 0:
+                raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+        if self.anchors and self.anchor_spacing_mm <= 0:
+            raise ValueError("anchor_spacing_mm must be > 0 when anchors are on")
+
+    @classmethod
+    def thesis(cls) -> "TransferOptions":
+        """The method exactly as published: affine normalisation, nearest-vertex snapping,
+        control points only, hard region seam, raw landmarks."""
+        return cls(normalisation="affine", snap="vertex", anchors=False, transition_mm=0.0,
+                   landmark_smoothing=0.0, merge_landmarks_mm=0.0)
+
+
+# --------------------------------------------------------------------------- faces
+
+@dataclass
+class NormalisedFace:
+    """A face grid in the reference frame, with the transform from its scan frame."""
+
+    grid: FaceGrid
+    transform: FrameTransform
+    _surface: MeshSurface | None = field(default=None, repr=False)
+    _tree: KDTree | None = field(default=None, repr=False)
+    _valid_index: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def landmarks(self) -> np.ndarray:
+        return self.grid.landmarks
+
+    def _build(self):
+        if self._tree is None:
+            flat = self.grid.points.reshape(-1, 3)
+            self._valid_index = np.flatnonzero(self.grid.mask.ravel())
+            if len(self._valid_index) < 3:
+                raise ValueError("the face has fewer than 3 valid vertices")
+            self._tree = KDTree(flat[self._valid_index])
+            mesh = self.grid.mesh()
+            self._surface = MeshSurface(mesh.vertices, mesh.faces) if len(mesh.faces) else None
+
+    def snap(self, points, mode: str) -> np.ndarray:
+        """Snap (k, 3) points onto this face: closest surface point or nearest vertex."""
+        self._build()
+        points = np.asarray(points, dtype=np.float64)
+        if mode == "surface" and self._surface is not None:
+            return self._surface.closest_point(points).points
+        _, nearest = self._tree.query(points)
+        return self._tree.points[nearest]
+
+    def nearest_vertex(self, points) -> np.ndarray:
+        """Flat grid index (into H*W) of the valid vertex nearest to each (k, 3) point."""
+        self._build()
+        _, nearest = self._tree.query(np.asarray(points, dtype=np.float64))
+        return self._valid_index[nearest]
+
+    def surface(self) -> MeshSurface:
+        self._build()
+        if self._surface is None:
+            raise ValueError("the face has no triangles (too few valid grid vertices)")
+        return self._surface
+
+
+def normalise_face(grid: FaceGrid, reference_landmarks, method: str = "similarity") -> NormalisedFace:
+    """Bring a face grid into the reference frame by its landmarks.
+
+    The affine method needs four particular landmarks; when one is missing, the face
+    is normalised by the similarity over all landmarks instead, with a warning.
+    """
+    try:
+        transform = landmark_transform(grid.landmarks, reference_landmarks, method)
+    except ValueError as exc:
+        if method != "affine" or "missing" not in str(exc):
+            raise
+        warnings.warn(f"{exc}; using the similarity normalisation for this face", stacklevel=2)
+        transform = landmark_transform(grid.landmarks, reference_landmarks, "similarity")
+    moved = replace(grid, points=transform.apply(grid.points),
+                    landmarks=transform.apply(grid.landmarks))
+    return NormalisedFace(moved, transform)
+
+
+def mouth_width(landmarks) -> float:
+    """Distance between the mouth corners (mm), NaN when one is missing."""
+    lm = np.asarray(landmarks, dtype=np.float64)
+    a = lm[landmark_index("Left mouth corner")]
+    b = lm[landmark_index("Right mouth corner")]
+    return float(np.linalg.norm(a - b))
+
+
+# --------------------------------------------------------------------------- landmark TPS
+
+# --------------------------------------------------------------------------- control points
+
+def place_control_points(action_unit: ActionUnit, reference: NormalisedFace) -> np.ndarray:
+    """(k, 3) positions of an AU's control points on the reference surface.
+
+    x, y come from the AU's definition; z is where a ray along -z meets the reference
+    surface (the nearest vertex in x, y where the ray misses, e.g. over a hole).
+    """
+    xy = action_unit.positions_xy(reference.landmarks)
+    top = np.nanmax(reference.grid.points[..., 2]) + 100.0
+    origins = np.column_stack([xy, np.full(len(xy), top)])
+    hits = reference.surface().intersect_rays(origins, np.tile([0.0, 0.0, -1.0], (len(xy), 1)))
+    points = np.where(hits.hit[:, None], hits.points, np.nan)
+    if not hits.hit.all():
+        flat = reference.grid.points.reshape(-1, 3)[reference.grid.mask.ravel()]
+        for i in np.flatnonzero(~hits.hit):
+            points[i] = flat[np.argmin(((flat[:, :2] - xy[i]) ** 2).sum(axis=1))]
+    return points
+
+
+@dataclass(frozen=True)
+class ControlPointMotion:
+    """One AU's control points on the neutral source and their modelled motion."""
+
+    activation: Activation
+    names: tuple[str, ...]
+    neutral: np.ndarray        # (k, 3) on the neutral source, reference frame
+    motion: np.ndarray         # (k, 3) v_i, already weighted by side and AU weight
+
+
+@dataclass
+class ExpressionModel:
+    """The modelled motion of one or more AUs on a source person."""
+
+    source: NormalisedFace
+    motions: list[ControlPointMotion]
+    options: TransferOptions
+
+    @property
+    def labels(self) -> list[str]:
+        return [m.activation.label for m in self.motions]
+
+
+def model_expression(source_neutral: NormalisedFace, source_expressive: NormalisedFace,
+                     activations: Sequence[Activation], reference: NormalisedFace,
+                     options: TransferOptions = TransferOptions()) -> ExpressionModel:
+    """Modelling: each AU's control points on the neutral source and their motion v_i."""
+    to_source = landmark_map(reference.landmarks, source_neutral.landmarks,
+                             smoothing=options.landmark_smoothing,
+                             merge_mm=options.merge_landmarks_mm, what="reference -> source")
+    to_expressive = landmark_map(source_neutral.landmarks, source_expressive.landmarks,
+                                 smoothing=options.landmark_smoothing,
+                                 merge_mm=options.merge_landmarks_mm,
+                                 what="source neutral -> expressive")
+    motions = []
+    for act in activations:
+        on_reference = place_control_points(act.action_unit, reference)
+        neutral = source_neutral.snap(to_source(on_reference), options.snap)
+        expressive = source_expressive.snap(to_expressive(neutral), options.snap)
+        weights = act.action_unit.side_weights(act.side) * act.weight
+        motions.append(ControlPointMotion(act, tuple(act.action_unit.names), neutral,
+                                          (expressive - neutral) * weights[:, None]))
+    return ExpressionModel(source_neutral, motions, options)
+
+
+# --------------------------------------------------------------------------- animation
+
+def _anchor_points(target: NormalisedFace, region_w: np.ndarray, control: np.ndarray,
+                   options: TransferOptions) -> np.ndarray:
+    """Zero-motion points of an AU's warp: the region's landmarks and a lattice of its
+    valid vertices, all farther than anchor_distance_mm from every control point."""
+    grid = target.grid
+    flat = grid.points.reshape(-1, 3)
+    inside = grid.mask.ravel() & (region_w.ravel() > 0.5)
+    candidates = [target.landmarks[np.isfinite(target.landmarks).all(axis=1)]]
+    # a lattice in x, y: the valid vertex nearest to each lattice node
+    pts = flat[inside]
+    if len(pts):
+        step = options.anchor_spacing_mm
+        cells = np.floor(pts[:, :2] / step).astype(np.int64)
+        _, first = np.unique(cells, axis=0, return_index=True)
+        candidates.append(pts[first])
+    cand = np.vstack(candidates)
+    cand = cand[region_w.ravel()[target.nearest_vertex(cand)] > 0.5]
+    if len(cand) == 0:
+        return cand
+    d = np.linalg.norm(cand[:, None, :] - control[None, :, :], axis=2).min(axis=1)
+    return cand[d > options.anchor_distance_mm]
+
+
+def _dedupe(points: np.ndarray, values: np.ndarray, tol_mm: float = 0.5):
+    """Merge points closer than tol_mm (mean value): coincident TPS centres are singular."""
+    keep_p, keep_v = [], []
+    taken = np.zeros(len(points), bool)
+    for i in range(len(points)):
+        if taken[i]:
+            continue
+        close = np.linalg.norm(points - points[i], axis=1) < tol_mm
+        close &= ~taken
+        taken |= close
+        keep_p.append(points[close].mean(axis=0))
+        keep_v.append(values[close].mean(axis=0))
+    return np.array(keep_p), np.array(keep_v)
+
+
+@dataclass
+class Animation:
+    """Precomputed displacement fields of a transfer on the target grid.
+
+    ``frame(m)`` is the target's neutral grid plus m times the summed AU fields (or a
+    weight per AU); it costs one scaled add per AU.
+    """
+
+    target: NormalisedFace
+    labels: list[str]
+    fields: np.ndarray            # (n_aus, H, W, 3) displacement at magnitude 1, reference frame
+    control_points: list[np.ndarray]
+    moved_control_points: list[np.ndarray]
+
+    def __post_init__(self):
+        self._neutral = np.where(self.target.grid.mask[..., None], self.target.grid.points, np.nan)
+        self._inverse = self.target.transform.inverse()
+
+    def _weights(self, magnitude) -> np.ndarray:
+        if isinstance(magnitude, Mapping):
+            unknown = set(magnitude) - set(self.labels)
+            if unknown:
+                raise ValueError(f"unknown AU label(s) {sorted(unknown)}; this animation has {self.labels}")
+            w = np.array([float(magnitude.get(label, 0.0)) for label in self.labels])
+        else:
+            w = np.broadcast_to(np.asarray(magnitude, dtype=np.float64), (len(self.labels),)).copy()
+        if not np.isfinite(w).all():
+            raise ValueError("magnitude must be finite")
+        if ((w < 0) | (w > 1)).any():
+            warnings.warn(f"magnitude {w.tolist()} is outside [0, 1]: extrapolating the expression",
+                          stacklevel=3)
+        return w
+
+    def displacement(self, magnitude=1.0) -> np.ndarray:
+        """(H, W, 3) displacement in the reference frame for a magnitude (or per-AU weights)."""
+        w = self._weights(magnitude)
+        out = w[0] * self.fields[0]
+        for k in range(1, len(w)):
+            out += w[k] * self.fields[k]
+        return out
+
+    def frame(self, magnitude=1.0) -> np.ndarray:
+        """(H, W, 3) animated target in the reference frame (NaN where the grid is invalid)."""
+        return self._neutral + self.displacement(magnitude)
+
+    def frame_in_scan(self, magnitude=1.0) -> np.ndarray:
+        """(H, W, 3) animated target in the target scan's own frame."""
+        return self._inverse.apply(self.frame(magnitude))
+
+    def sweep(self, magnitudes: Sequence[float]) -> list[np.ndarray]:
+        return [self.frame(m) for m in magnitudes]
+
+
+def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
+    """Animation: carry the modelled motion onto the target and precompute each AU's field."""
+    options = model.options
+    to_target = landmark_map(model.source.landmarks, target.landmarks,
+                             smoothing=options.landmark_smoothing,
+                             merge_mm=options.merge_landmarks_mm, what="source -> target")
+    scale_s, scale_t = mouth_width(model.source.landmarks), mouth_width(target.landmarks)
+    lower_scale = scale_t / scale_s if np.isfinite(scale_s * scale_t) and scale_s > 0 else 1.0
+    if lower_scale == 1.0 and not np.isfinite(scale_s * scale_t):
+        warnings.warn("a mouth corner is missing: lower-face motion is not scaled by mouth width",
+                      stacklevel=2)
+    grid = target.grid
+    flat = grid.points.reshape(-1, 3)
+    valid = grid.mask.ravel()
+    fields, controls, moved = [], [], []
+    for motion in model.motions:
+        region = motion.activation.action_unit.region
+        region_w = region_weight(region, grid.points, target.landmarks, options.transition_mm)
+        control = target.snap(to_target(motion.neutral), options.snap)
+        scale = lower_scale if region == "lower" else 1.0
+        displacement = motion.motion * scale
+        centres, values = _dedupe(control, displacement)
+        if options.anchors:
+            anchors = _anchor_points(target, region_w, centres, options)
+            centres = np.vstack([centres, anchors])
+            values = np.vstack([values, np.zeros_like(anchors)])
+            centres, values = _dedupe(centres, values)
+        warp = TPS(centres, centres + values)
+        field_flat = np.zeros_like(flat)
+        field_flat[valid] = warp.displacement(flat[valid]) * region_w.ravel()[valid, None]
+        fields.append(field_flat.reshape(grid.points.shape))
+        controls.append(control)
+        moved.append(control + displacement)
+    return Animation(target, model.labels, np.stack(fields), controls, moved)
+
+
+# --------------------------------------------------------------------------- one call
+
+@dataclass
+class TransferResult:
+    """The target wearing the expression, in the reference frame and in its scan frame."""
+
+    animation: Animation
+    magnitude: float | Mapping[str, float]
+    model: ExpressionModel
+    timings: dict = field(default_factory=dict)  # seconds per stage
+
+    @property
+    def target(self) -> NormalisedFace:
+        return self.animation.target
+
+    @property
+    def vertices_normalised(self) -> np.ndarray:
+        return self.animation.frame(self.magnitude)
+
+    @property
+    def neutral_normalised(self) -> np.ndarray:
+        return self.animation.frame(0.0)
+
+    @property
+    def vertices(self) -> np.ndarray:
+        """(H, W, 3) animated target in the target scan's own frame."""
+        return self.animation.frame_in_scan(self.magnitude)
+
+    @property
+    def neutral(self) -> np.ndarray:
+        """(H, W, 3) the target grid it started from, in the target scan's own frame."""
+        return self.animation.frame_in_scan(0.0)
+
+    @property
+    def mask(self) -> np.ndarray:
+        return self.target.grid.mask
+
+    def to_npz_dict(self) -> dict:
+        """Arrays for ``--out result.npz`` (scan-frame arrays first, as scorers expect)."""
+        return dict(
+            vertices=self.vertices, neutral=self.neutral, mask=self.mask,
+            vertices_normalised=self.vertices_normalised,
+            neutral_normalised=self.neutral_normalised,
+            scan_to_normalised=self.target.transform.matrix,
+            uv=self.target.grid.uv, landmarks=self.target.transform.apply_inverse(self.target.landmarks),
+            action_units=np.array(self.animation.labels),
+        )
+
+
+def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: FaceGrid, action_units,
+             magnitude=1.0, *, reference=None, library: ActionUnitLibrary | None = None,
+             options: TransferOptions = TransferOptions()) -> TransferResult:
+    """Put the source's expression on the target.
+
+    Parameters
+    ----------
+    source_neutral, source_expressive, target : FaceGrid
+        Resampled faces with landmarks (see :func:`tpscore.preprocess.load_scan`).
+    action_units : str, mapping or sequence
+        What to transfer: ``"12"``, ``"12L"``, ``"1,4,15"``, ``"sadness"``,
+        ``{"12": 0.5}`` (see :meth:`ActionUnitLibrary.parse`).
+    magnitude : float or mapping
+        m in [0, 1] (values outside warn), or a weight per AU label.
+    reference : AverageFace, optional
+        The reference face (default: the one shipped with tpscore).
+    library : ActionUnitLibrary, optional
+        Default: the shipped library.
+    options : TransferOptions
+        Pipeline choices; ``TransferOptions.thesis()`` is the method as published.
+    """
+    from .average_face import load_average_face
+
+    clock = time.perf_counter()
+    timings = {}
+
+    def lap(stage):
+        nonlocal clock
+        now = time.perf_counter()
+        timings[stage] = now - clock
+        clock = now
+
+    library = library or default_library()
+    reference = reference or load_average_face()
+    activations = library.parse(action_units)
+    ref_face = reference.as_normalised_face()
+    lap("setup")
+    faces = [normalise_face(g, ref_face.landmarks, options.normalisation)
+             for g in (source_neutral, source_expressive, target)]
+    lap("normalise")
+    model = model_expression(faces[0], faces[1], activations, ref_face, options)
+    lap("model")
+    animation = animate(model, faces[2])
+    lap("animate")
+    return TransferResult(animation, magnitude, model, timings)

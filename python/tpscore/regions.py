@@ -1,0 +1,67 @@
+"""Upper and lower face regions, defined from landmarks.
+
+The boundary is the straight line through the eye corners, fitted by least squares
+to the four eye corners present (in the x-y plane of the normalised frame, where the
+face looks toward +z): everything above it is the upper face (brows, forehead,
+upper eyelids), everything below it the lower face (cheeks, nose, mouth, chin).
+Upper-face AUs move only the upper face and lower-face AUs only the lower face, so
+a brow raise cannot move the mouth and a smile cannot move the brows.
+
+With ``transition_mm = 0`` the split is a hard seam (the method as published); a
+positive value blends the two sides over a band of that width centred on the line,
+with a smooth (C1) ramp, so a region's warp fades out instead of stopping at a seam.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .landmarks import landmark_index
+
+__all__ = ["region_boundary", "upper_face_weight", "region_weight"]
+
+_EYE_CORNERS = ("Outer left eye corner", "Inner left eye corner",
+                "Inner right eye corner", "Outer right eye corner")
+_FALLBACK = ("Nose saddle left", "Nose saddle right")
+
+
+def region_boundary(landmarks) -> tuple[float, float]:
+    """(slope, intercept) of the boundary line y = slope * x + intercept.
+
+    Uses the eye corners present; with only one, a horizontal line through it; with
+    none, the nose saddles. Raises ValueError when none of these is present.
+    """
+    lm = np.asarray(landmarks, dtype=np.float64)
+    pts = lm[[landmark_index(n) for n in _EYE_CORNERS]]
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) == 0:
+        pts = lm[[landmark_index(n) for n in _FALLBACK]]
+        pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) == 0:
+        raise ValueError("cannot place the upper/lower face boundary: no eye corner and no nose saddle landmark")
+    if len(pts) == 1 or np.ptp(pts[:, 0]) < 1.0:
+        return 0.0, float(pts[:, 1].mean())
+    slope, intercept = np.polyfit(pts[:, 0], pts[:, 1], 1)
+    return float(slope), float(intercept)
+
+
+def upper_face_weight(points, landmarks, transition_mm: float = 0.0) -> np.ndarray:
+    """Weight in [0, 1] of the upper face at each point (..., 3); NaN points get 0."""
+    p = np.asarray(points, dtype=np.float64)
+    slope, intercept = region_boundary(landmarks)
+    # signed distance above the boundary line, measured perpendicular to it
+    above = (p[..., 1] - (slope * p[..., 0] + intercept)) / np.hypot(1.0, slope)
+    above = np.where(np.isfinite(above), above, -np.inf)
+    if transition_mm <= 0:
+        return (above > 0).astype(np.float64)
+    t = np.clip(above / transition_mm + 0.5, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def region_weight(region: str, points, landmarks, transition_mm: float = 0.0) -> np.ndarray:
+    """Weight of `region` ('upper' or 'lower') at each point; the two weights sum to 1."""
+    upper = upper_face_weight(points, landmarks, transition_mm)
+    if region == "upper":
+        return upper
+    if region == "lower":
+        return 1.0 - upper
+    raise ValueError(f"region must be 'upper' or 'lower', got {region!r}")

@@ -1,0 +1,91 @@
+import numpy as np
+import pytest
+
+from tpscore.landmarks import N_LANDMARKS, landmark_index
+from tpscore.normalise import (
+    AFFINE_LANDMARKS,
+    FrameTransform,
+    landmark_transform,
+    similarity_transform,
+    thesis_affine_transform,
+)
+
+
+def _rotation(yaw, pitch, roll):
+    y, p, r = np.radians([yaw, pitch, roll])
+    ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
+    rx = np.array([[1, 0, 0], [0, np.cos(p), -np.sin(p)], [0, np.sin(p), np.cos(p)]])
+    rz = np.array([[np.cos(r), -np.sin(r), 0], [np.sin(r), np.cos(r), 0], [0, 0, 1]])
+    return ry @ rx @ rz
+
+
+@pytest.fixture
+def reference():
+    return np.random.default_rng(3).normal(scale=40.0, size=(N_LANDMARKS, 3))
+
+
+def test_similarity_recovers_a_known_pose(reference):
+    rotation = _rotation(10, -6, 3)
+    scan = 1.1 * reference @ rotation.T + [5.0, -20.0, 300.0]
+    transform = similarity_transform(scan, reference)
+    # exact data: the closed form is exact up to rounding (1e-9 mm on 100 mm coordinates)
+    assert np.abs(transform.apply(scan) - reference).max() < 1e-9
+    assert transform.scale == pytest.approx(1 / 1.1, rel=1e-12)
+    assert np.abs(transform.apply_inverse(reference) - scan).max() < 1e-9
+
+
+def test_similarity_ignores_missing_landmarks_and_needs_three(reference):
+    scan = reference + [1.0, 2.0, 3.0]
+    scan[[0, 5, 9]] = np.nan
+    assert np.abs(similarity_transform(scan, reference).apply(reference + [1, 2, 3]) - reference).max() < 1e-9
+    scan[3:] = np.nan
+    with pytest.raises(ValueError, match="at least 3 landmark pairs"):
+        similarity_transform(scan, reference)
+
+
+def test_similarity_never_returns_a_reflection(reference):
+    mirrored = reference * [-1.0, 1.0, 1.0]
+    transform = similarity_transform(mirrored, reference)
+    assert np.linalg.det(transform.matrix[:3, :3]) > 0
+
+
+def test_collinear_pairs_are_refused():
+    line = np.outer(np.arange(N_LANDMARKS), [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="one line"):
+        similarity_transform(line, line)
+
+
+def test_thesis_affine_maps_its_four_landmarks_exactly(reference):
+    affine = np.array([[1.1, 0.1, 0.0], [0.05, 0.9, 0.1], [0.0, -0.1, 1.2]])
+    scan = reference @ affine.T + [10.0, 0.0, -4.0]
+    transform = thesis_affine_transform(scan, reference)
+    idx = [landmark_index(n) for n in AFFINE_LANDMARKS]
+    assert np.abs(transform.apply(scan[idx]) - reference[idx]).max() < 1e-9
+    # an affine scan of the reference is undone everywhere, not only at the four
+    assert np.abs(transform.apply(scan) - reference).max() < 1e-8
+
+
+def test_thesis_affine_names_the_missing_landmark(reference):
+    scan = reference.copy()
+    scan[landmark_index("Chin middle")] = np.nan
+    with pytest.raises(ValueError, match="missing: Chin middle"):
+        thesis_affine_transform(scan, reference)
+
+
+def test_frame_transform_validates_and_composes():
+    with pytest.raises(ValueError, match="4 x 4"):
+        FrameTransform(np.eye(3))
+    with pytest.raises(ValueError, match="singular"):
+        FrameTransform(np.diag([1.0, 0.0, 1.0, 1.0]))
+    a = FrameTransform(np.diag([2.0, 2.0, 2.0, 1.0]))
+    shift = np.eye(4)
+    shift[:3, 3] = [1, 2, 3]
+    b = FrameTransform(shift)
+    p = np.array([[1.0, 1.0, 1.0]])
+    assert np.allclose(a.then(b).apply(p), b.apply(a.apply(p)))
+    assert np.allclose(a.then(b).apply_inverse(a.then(b).apply(p)), p)
+
+
+def test_unknown_method_is_refused(reference):
+    with pytest.raises(ValueError, match="unknown normalisation method"):
+        landmark_transform(reference, reference, "procrustes")
