@@ -392,6 +392,11 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
         As in :func:`resample_scan`.
     """
     path = Path(path)
+    # the scan first: a missing scan is the error to report, not its missing landmarks
+    if path.suffix.lower() == ".bnt":
+        source = read_bnt(path)
+    else:
+        source, _ = read_mesh(path)
     if landmarks_path is None:
         candidates = [path.with_suffix(s) for s in (".lm3", ".csv", ".json")]
         found = [c for c in candidates if c.is_file()]
@@ -404,10 +409,6 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
             landmarks = None
     else:
         landmarks = read_landmarks(landmarks_path)
-    if path.suffix.lower() == ".bnt":
-        source = read_bnt(path)
-    else:
-        source, _ = read_mesh(path)
     return resample_scan(source, landmarks, shape, max_gap_mm=max_gap_mm)
 
 
