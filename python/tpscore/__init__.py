@@ -6,10 +6,29 @@ kernels in ``tpscore._core`` are private.
 from __future__ import annotations
 
 from ._core import num_threads, set_num_threads
+from .mesh import (
+    MeanCurvature,
+    boundary_vertices,
+    cotan_laplacian,
+    face_normals,
+    mass_matrix,
+    mean_curvature,
+    vertex_normals,
+    voronoi_areas,
+)
 
 __version__ = "0.1.0"
 
 __all__ = [
     "num_threads",
     "set_num_threads",
+    # mesh operators
+    "MeanCurvature",
+    "boundary_vertices",
+    "cotan_laplacian",
+    "face_normals",
+    "mass_matrix",
+    "mean_curvature",
+    "vertex_normals",
+    "voronoi_areas",
 ]
