@@ -16,10 +16,12 @@ from .mesh import (
     vertex_normals,
     voronoi_areas,
 )
+from .spatial import KDTree
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "KDTree",
     "num_threads",
     "set_num_threads",
     # mesh operators

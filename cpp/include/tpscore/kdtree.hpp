@@ -11,6 +11,19 @@ namespace tpscore {
 
 /// Static kd-tree over a copy of (n, 3) points. Immutable after construction, so
 /// concurrent queries from several threads are safe.
+///
+/// Build: each node splits its points at the median of the axis along which their
+/// bounding box is widest; nodes of at most `leaf_size` points become leaves. The copy
+/// of the points is permuted into leaf order, so a leaf's points are contiguous in
+/// memory; indices reported by every query are the ORIGINAL row indices.
+///
+/// Ties: neighbours are ranked by (squared distance, original index), so among points at
+/// exactly the same distance the one with the smaller index comes first. Results are
+/// therefore uniquely defined and do not depend on the tree shape or the thread count.
+///
+/// `workers` (every batched query): the number of threads to use; <= 0 means
+/// tpscore::num_threads(); 1 runs serially on the calling thread. It is an upper bound:
+/// small batches run serially anyway, and never more than num_threads() are used.
 class KDTree {
 public:
     /// Builds the tree. Preconditions: points finite; leaf_size >= 1.
@@ -20,30 +33,81 @@ public:
     std::int64_t size() const;
 
     /// The k nearest neighbours of each row of `queries` (m, 3), nearest first.
-    /// Writes row-major (m, k) `distances` and `indices`; where fewer than k points lie
-    /// within `max_distance`, the remaining slots get +inf and index -1.
+    /// Writes row-major (m, k) `distances` and `indices`; only points at a distance
+    /// strictly less than `max_distance` count (pass +inf for no bound); where fewer than
+    /// k such points exist, the remaining slots get +inf and index -1.
+    /// Preconditions: queries finite; k >= 1; max_distance >= 0 (or +inf).
     /// Threaded over query rows.
     void query(const PointsRef& queries, int k, double max_distance, double* distances,
-               std::int64_t* indices) const;
+               std::int64_t* indices, int workers = 0) const;
 
-    /// Appends (index, squared distance) of every point within `radius` of `query`
-    /// (3 doubles) to `out`, in no particular order. Single-threaded; reentrant.
+    /// Appends (index, squared distance) of every point with |p - query| <= `radius`
+    /// (3 doubles) to `out`, in no particular (but deterministic) order.
+    /// Single-threaded; reentrant. Precondition: radius >= 0.
     void radius_search(const double* query, double radius,
                        std::vector<std::pair<std::int64_t, double>>& out) const;
 
-    /// Batched radius query in CSR form: the neighbours of query i are
-    /// indices[offsets[i] .. offsets[i+1]), with their distances; sorted by distance
-    /// when `sort` is true. Threaded over query rows; output independent of threads.
+    /// Batched radius query in CSR form: the neighbours of query i (|p - q_i| <= radius)
+    /// are indices[offsets[i] .. offsets[i+1]), with their (not squared) distances;
+    /// sorted by (distance, index) when `sort` is true, else in a deterministic tree
+    /// order. `offsets` gets m + 1 entries. Threaded over query rows; output independent
+    /// of the thread count.
     void query_radius(const PointsRef& queries, double radius, bool sort,
                       std::vector<std::int64_t>& offsets, std::vector<std::int64_t>& indices,
-                      std::vector<double>& distances) const;
+                      std::vector<double>& distances, int workers = 0) const;
+
+    /// The indexed points in leaf order: row i is the original point order()[i].
+    const Points& permuted_points() const { return points_; }
+    /// Original row index of each permuted point.
+    const std::vector<std::int64_t>& order() const { return order_; }
+
+    /// A node of the tree: the bounding box of its points, and either two children
+    /// (inner node) or a range of permuted points (leaf, left == -1).
+    struct Node {
+        double lo[3];
+        double hi[3];
+        std::int64_t begin;
+        std::int64_t end;
+        std::int32_t left;
+        std::int32_t right;
+    };
 
 private:
-    struct Node;
+    std::int32_t build(std::int64_t begin, std::int64_t end);
+
+    template <class Candidates>
+    void search_knn(std::int32_t node, const double* q, double bound2, Candidates& best) const;
+
     Points points_;
     std::vector<std::int64_t> order_;
     std::vector<Node> nodes_;
     int leaf_size_;
 };
+
+/// Calls body(begin, end) over [0, n) like tpscore::parallel_for, with at most
+/// `workers` threads (<= 0: num_threads(); 1: serial on the calling thread).
+/// Shared by the spatial query kernels, whose callers choose the thread count per call.
+template <class Body>
+void parallel_rows(std::size_t n, std::size_t min_chunk, int workers, Body&& body);
+
+}  // namespace tpscore
+
+#include "tpscore/parallel.hpp"
+
+namespace tpscore {
+
+template <class Body>
+void parallel_rows(std::size_t n, std::size_t min_chunk, int workers, Body&& body) {
+    if (n == 0) return;
+    if (workers == 1) {
+        body(std::size_t{0}, n);
+        return;
+    }
+    // parallel_for uses min(num_threads, n / min_chunk) workers, so a chunk of at least
+    // n / workers items caps the count at `workers`.
+    if (workers > 1)
+        min_chunk = std::max<std::size_t>(min_chunk, (n + workers - 1) / static_cast<std::size_t>(workers));
+    parallel_for(n, min_chunk, std::forward<Body>(body));
+}
 
 }  // namespace tpscore

@@ -1,3 +1,4 @@
-"""Plain NumPy reference implementations of the compiled kernels, one module per
-kernel family. They favour obvious correctness over speed; the tests compare the
-compiled core against them and the benchmarks report the speed ratio."""
+"""Plain NumPy reference implementations of the compiled kernels, one module per family.
+
+They are slow and obviously correct; the tests compare the compiled core against them.
+"""
