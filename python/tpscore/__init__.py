@@ -8,6 +8,16 @@ from __future__ import annotations
 
 from . import datasets, render
 from ._core import num_threads, set_num_threads
+from .mesh import (
+    MeanCurvature,
+    boundary_vertices,
+    cotan_laplacian,
+    face_normals,
+    mass_matrix,
+    mean_curvature,
+    vertex_normals,
+    voronoi_areas,
+)
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
 
 __version__ = "0.1.0"
@@ -22,4 +32,13 @@ __all__ = [
     "set_num_threads",
     "datasets",
     "render",
+    # mesh operators
+    "MeanCurvature",
+    "boundary_vertices",
+    "cotan_laplacian",
+    "face_normals",
+    "mass_matrix",
+    "mean_curvature",
+    "vertex_normals",
+    "voronoi_areas",
 ]
