@@ -1,5 +1,68 @@
+// nanobind glue for the dense RBF / thin-plate-spline kernels (tpscore/rbf.hpp).
+// Inputs arrive validated, C-contiguous float64 from tpscore.rbf; every call
+// releases the GIL, and results are returned as owning NumPy arrays.
+#include <nanobind/eigen/dense.h>
 #include <nanobind/nanobind.h>
 
-namespace nb = nanobind;
+#include "tpscore/rbf.hpp"
 
-void bind_rbf(nb::module_& m) { (void)m; }
+namespace nb = nanobind;
+using namespace nb::literals;
+
+namespace {
+
+// Row-major float64 without conversion: the Python layer already made it so, and a
+// silent copy here would hide a missed conversion.
+using PointsIn = nb::DRef<const tpscore::Points>;
+using MatrixIn = nb::DRef<const tpscore::MatrixX>;
+
+}  // namespace
+
+void bind_rbf(nb::module_& m) {
+    nb::enum_<tpscore::RbfKernel>(m, "RbfKernel", "Radial functions of the dense RBF kernels.")
+        .value("tps", tpscore::RbfKernel::tps, "r^2 ln r^2")
+        .value("biharmonic", tpscore::RbfKernel::biharmonic, "r")
+        .value("triharmonic", tpscore::RbfKernel::triharmonic, "r^3")
+        .value("multiquadric", tpscore::RbfKernel::multiquadric, "sqrt(1 + (epsilon r)^2)")
+        .value("gaussian", tpscore::RbfKernel::gaussian, "exp(-(epsilon r)^2)");
+
+    nb::class_<tpscore::RbfModel>(m, "RbfModel",
+                                  "A fitted dense RBF (immutable; see tpscore.RBF).")
+        .def_prop_ro("kernel", [](const tpscore::RbfModel& s) { return s.kernel; })
+        .def_prop_ro("epsilon", [](const tpscore::RbfModel& s) { return s.epsilon; })
+        .def_prop_ro("smoothing", [](const tpscore::RbfModel& s) { return s.smoothing; })
+        // Copies, so Python never holds a writable view into the fitted model.
+        .def_prop_ro("centres", [](const tpscore::RbfModel& s) { return tpscore::MatrixX(s.centres); })
+        .def_prop_ro("weights", [](const tpscore::RbfModel& s) { return tpscore::MatrixX(s.weights); })
+        .def_prop_ro("affine", [](const tpscore::RbfModel& s) { return tpscore::MatrixX(s.affine); })
+        .def_prop_ro("bending_energy", [](const tpscore::RbfModel& s) { return s.bending_energy; })
+        .def_prop_ro("rcond", [](const tpscore::RbfModel& s) { return s.rcond; })
+        .def_prop_ro("scale", [](const tpscore::RbfModel& s) { return s.scale; })
+        .def("evaluate",
+             [](const tpscore::RbfModel& s, PointsIn queries) {
+                 return tpscore::rbf_evaluate(s, queries, false);
+             },
+             "queries"_a, nb::call_guard<nb::gil_scoped_release>(),
+             "f at (m, 3) queries: (m, k).")
+        .def("displacement",
+             [](const tpscore::RbfModel& s, PointsIn queries) {
+                 return tpscore::rbf_evaluate(s, queries, true);
+             },
+             "queries"_a, nb::call_guard<nb::gil_scoped_release>(),
+             "f(x) - x at (m, 3) queries: (m, 3); needs k == 3.")
+        .def("evaluation_matrix",
+             [](const tpscore::RbfModel& s, PointsIn queries) {
+                 return tpscore::rbf_evaluation_matrix(s, queries);
+             },
+             "queries"_a, nb::call_guard<nb::gil_scoped_release>(),
+             "[phi(|x - p_j|) | 1 x y z] at (m, 3) queries: (m, n + 4).");
+
+    m.def("rbf_fit",
+          [](PointsIn centres, MatrixIn values, tpscore::RbfKernel kernel, double epsilon,
+             double smoothing) {
+              return tpscore::rbf_fit(centres, values, kernel, epsilon, smoothing);
+          },
+          "centres"_a, "values"_a, "kernel"_a, "epsilon"_a, "smoothing"_a,
+          nb::call_guard<nb::gil_scoped_release>(),
+          "Fit a dense RBF with an affine part to (n, 3) centres and (n, k) values.");
+}

@@ -18,6 +18,7 @@ from .mesh import (
     vertex_normals,
     voronoi_areas,
 )
+from .rbf import RBF, RBF_KERNELS, TPS
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
 
 __version__ = "0.1.0"
@@ -28,6 +29,9 @@ __all__ = [
     "MeshSurface",
     "RayHits",
     "closest_point_on_mesh",
+    "RBF",
+    "RBF_KERNELS",
+    "TPS",
     "num_threads",
     "set_num_threads",
     "datasets",

@@ -1,0 +1,392 @@
+"""Dense radial basis function interpolation and the 3D thin-plate spline.
+
+A fitted interpolant is
+
+    f(x) = [1 x y z] A + sum_i W_i phi(|x - p_i|),   with P^T W = 0,
+
+over centres p_i (mm), with P = [1 x y z] of the centres. Fitting solves
+
+    [ K + sign * smoothing * I   P ] [W]   [values]
+    [ P^T                        0 ] [A] = [  0   ]
+
+with K_ij = phi(|p_i - p_j|) (a dense LU in the compiled core, in coordinates
+centred and scaled for conditioning; the exposed weights and affine part are in the
+original coordinates).
+
+Kernels (r in mm; the names are explicit because they are easily confused):
+
+=============  =========================  ====================================  ====
+name           phi(r)                     SciPy RBFInterpolator equivalent      sign
+=============  =========================  ====================================  ====
+tps            r^2 ln r^2, phi(0) = 0     ``thin_plate_spline`` (r^2 ln r)      +1
+biharmonic     r                          ``linear`` (-r)                       -1
+triharmonic    r^3                        ``cubic`` (r^3)                       +1
+multiquadric   +sqrt(1 + (eps r)^2)       ``multiquadric`` (-sqrt(1+(eps r)^2)) -1
+gaussian       exp(-(eps r)^2)            ``gaussian``                          +1
+=============  =========================  ====================================  ====
+
+Each interpolant equals SciPy's with ``degree=1`` (same function, weights scaled by
+the constant factor between the kernels). `sign` makes ``sign * K`` conditionally
+positive definite; smoothing is applied with it, so a larger ``smoothing >= 0``
+always gives a smoother fit that interpolates less exactly (for biharmonic this is
+the ``K - rho I`` of template adaptation). SciPy adds its ``smoothing`` to the
+diagonal of its own kernel matrix, so ``RBF(..., smoothing=s)`` equals
+``RBFInterpolator(..., smoothing=s)`` for every kernel here except tps, whose SciPy
+kernel is half of ours: ``smoothing=s`` here is SciPy's ``smoothing=s / 2``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import _core
+from ._validation import MAX_DENSE_ELEMENTS, as_points, as_positive, as_values
+
+__all__ = ["RBF", "TPS", "RBF_KERNELS"]
+
+#: Kernel names accepted by :class:`RBF`, mapped to the core's enumeration.
+RBF_KERNELS: dict[str, _core.RbfKernel] = {
+    "tps": _core.RbfKernel.tps,
+    "biharmonic": _core.RbfKernel.biharmonic,
+    "triharmonic": _core.RbfKernel.triharmonic,
+    "multiquadric": _core.RbfKernel.multiquadric,
+    "gaussian": _core.RbfKernel.gaussian,
+}
+_KERNELS_WITH_EPSILON = ("multiquadric", "gaussian")
+
+# Centres closer than this fraction of the centres' extent (largest side of their
+# bounding box) coincide: the two kernel rows are then equal to about 1e-16 and the
+# interpolation system is singular to working precision.
+DUPLICATE_RELATIVE_TOLERANCE = 1e-8
+# Centres whose spread across some direction is below this fraction of their extent
+# are treated as flat (coplanar or collinear): the affine part [1 x y z] then has
+# no unique solution.
+FLATNESS_RELATIVE_TOLERANCE = 1e-8
+# [1 x y z] has 4 unknowns per value column, and a thin-plate spline needs at least
+# one radial degree of freedom beyond them.
+MIN_CENTRES = 5
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    array.setflags(write=False)
+    return array
+
+
+def _find_coincident_pair(centres: np.ndarray, tolerance: float) -> tuple[int, int, float] | None:
+    """The first pair of centres closer than `tolerance` (mm), or None.
+
+    Sorts the centres along a fixed generic direction and compares each with its
+    successors while their projections lie within `tolerance`: O(n log n) for any
+    cloud that is not itself crowded along that direction.
+    """
+    direction = np.array([0.5773502691896258, 0.5773502691896258, 0.5773502691896258])
+    direction = direction + np.array([0.0, 1e-3, 3e-3])  # avoid axis-aligned planes
+    projection = centres @ direction
+    order = np.argsort(projection, kind="stable")
+    sorted_projection = projection[order]
+    sorted_centres = centres[order]
+    n = len(centres)
+    # |d . u| <= |d| |u|, so points within `tolerance` project within tolerance * |u|.
+    window = tolerance * np.linalg.norm(direction)
+    offset = 1
+    while offset < n:
+        close = sorted_projection[offset:] - sorted_projection[:-offset] <= window
+        if not close.any():
+            return None
+        candidates = np.flatnonzero(close)
+        distances = np.linalg.norm(
+            sorted_centres[candidates + offset] - sorted_centres[candidates], axis=1)
+        hits = candidates[distances <= tolerance]
+        if hits.size:
+            pairs = np.sort(np.stack([order[hits], order[hits + offset]], axis=1), axis=1)
+            first = np.lexsort((pairs[:, 1], pairs[:, 0]))[0]
+            i, j = (int(v) for v in pairs[first])
+            return i, j, float(np.linalg.norm(centres[i] - centres[j]))
+        offset += 1
+    return None
+
+
+def _affine_rank(centres: np.ndarray, extent: float) -> int:
+    """Rank of [1 x y z] over the centres, flatness judged relative to `extent`."""
+    centred = centres - centres.mean(axis=0)
+    singular_values = np.linalg.svd(centred / extent, compute_uv=False)
+    return 1 + int(np.count_nonzero(singular_values > FLATNESS_RELATIVE_TOLERANCE))
+
+
+def _check_geometry(centres: np.ndarray, allow_coincident: bool) -> None:
+    n = len(centres)
+    if n < MIN_CENTRES:
+        raise ValueError(
+            f"centres: at least {MIN_CENTRES} are needed (4 for the affine part "
+            f"[1 x y z] and at least one more for the radial part), got {n}")
+    extent = float(np.max(centres.max(axis=0) - centres.min(axis=0)))
+    if extent == 0.0:
+        raise ValueError(f"centres: all {n} centres coincide")
+    if not allow_coincident:
+        pair = _find_coincident_pair(centres, DUPLICATE_RELATIVE_TOLERANCE * extent)
+        if pair is not None:
+            i, j, distance = pair
+            raise ValueError(
+                f"centres {i} and {j} coincide (distance {distance:.3g} mm, below "
+                f"{DUPLICATE_RELATIVE_TOLERANCE:g} of the centres' extent {extent:.3g} mm); "
+                "remove one, or pass smoothing > 0 to fit through both approximately")
+    rank = _affine_rank(centres, extent)
+    if rank < 4:
+        shape = {3: "coplanar", 2: "collinear", 1: "coincident"}[rank]
+        raise ValueError(
+            f"the affine part is undetermined: centres are {shape} (rank {rank} of "
+            "[1 x y z]); a 3D RBF needs centres that span a volume")
+
+
+class RBF:
+    """A dense radial basis function interpolant with an affine part, in 3D.
+
+    ``f(x) = [1 x y z] @ affine + sum_i weights[i] * phi(|x - centres[i]|)``, fitted so
+    that ``f(centres) == values`` (approximately, with smoothing > 0). See the module
+    docstring for the kernels, their SciPy equivalents and the smoothing convention.
+
+    Parameters
+    ----------
+    centres : array_like, shape (n, 3)
+        Centre positions in mm, n >= 5, distinct, not all on one plane.
+    values : array_like, shape (n,) or (n, k)
+        Values at the centres (any units; k columns are fitted independently).
+        A 1-D array is treated as k = 1.
+    kernel : {"tps", "biharmonic", "triharmonic", "multiquadric", "gaussian"}
+        The radial function phi; "tps" is r^2 ln r^2.
+    smoothing : float, optional
+        lambda >= 0, added to the kernel matrix diagonal with the kernel's
+        definiteness sign: ``K + sign * lambda * I``. Units of phi (mm^2 for tps,
+        mm for biharmonic, mm^3 for triharmonic, none for gaussian and
+        multiquadric). 0 interpolates exactly; large values approach the affine
+        least-squares fit. With smoothing > 0, coincident centres are allowed.
+    epsilon : float, optional
+        Shape parameter in 1/mm, required (> 0) for "gaussian" and "multiquadric"
+        and not accepted for the scale-free kernels.
+
+    Raises
+    ------
+    ValueError
+        Unknown kernel, bad epsilon or smoothing, wrong shapes, NaN or infinite
+        input, fewer than 5 centres, coincident centres (naming their indices),
+        coplanar or collinear centres, or a numerically singular system.
+
+    Notes
+    -----
+    A fitted object is immutable (its arrays are read-only) and its methods release
+    the GIL, so several threads may evaluate it at once.
+    """
+
+    __slots__ = ("_model", "_kernel", "_centres", "_weights", "_affine", "_coefficients",
+                 "_n_values")
+
+    def __init__(self, centres, values, kernel: str = "tps", *, smoothing: float = 0.0,
+                 epsilon: float | None = None):
+        if not isinstance(kernel, str) or kernel not in RBF_KERNELS:
+            raise ValueError(
+                f"kernel must be one of {', '.join(repr(k) for k in RBF_KERNELS)}, "
+                f"got {kernel!r}")
+        if kernel in _KERNELS_WITH_EPSILON:
+            if epsilon is None:
+                raise ValueError(f"epsilon (1/mm) is required for kernel {kernel!r}")
+            epsilon_value = as_positive(epsilon, "epsilon")
+        else:
+            if epsilon is not None:
+                raise ValueError(
+                    f"epsilon applies only to kernels {_KERNELS_WITH_EPSILON}; kernel "
+                    f"{kernel!r} is scale-free, so pass epsilon=None")
+            epsilon_value = 0.0
+        smoothing_value = as_positive(smoothing, "smoothing", allow_zero=True)
+        centres_array = as_points(centres, "centres")
+        values_array = as_values(values, len(centres_array), "values")
+        if values_array.shape[1] == 0:
+            raise ValueError("values must have at least one column, got shape "
+                             f"{values_array.shape}")
+        _check_geometry(centres_array, allow_coincident=smoothing_value > 0)
+        try:
+            model = _core.rbf_fit(centres_array, values_array, RBF_KERNELS[kernel],
+                                  epsilon_value, smoothing_value)
+        except ValueError as exc:
+            raise ValueError(f"cannot fit the {kernel} RBF: {exc}") from None
+        setter = object.__setattr__
+        setter(self, "_model", model)
+        setter(self, "_kernel", kernel)
+        setter(self, "_n_values", values_array.shape[1])
+        setter(self, "_centres", _read_only(model.centres))
+        setter(self, "_weights", _read_only(model.weights))
+        setter(self, "_affine", _read_only(model.affine))
+        setter(self, "_coefficients",
+               _read_only(np.concatenate([model.weights, model.affine], axis=0)))
+
+    def __setattr__(self, name, value):
+        raise AttributeError(f"{type(self).__name__} is immutable once fitted")
+
+    # --- evaluation -------------------------------------------------------------
+    def __call__(self, points) -> np.ndarray:
+        """Evaluate f at query points.
+
+        Parameters
+        ----------
+        points : array_like, shape (m, 3)
+            Query positions in mm.
+
+        Returns
+        -------
+        numpy.ndarray, shape (m, k)
+            f at each point (k columns even when the values were 1-D).
+        """
+        queries = as_points(points, "points")
+        return self._model.evaluate(queries)
+
+    def displacement(self, points) -> np.ndarray:
+        """Evaluate the displacement f(x) - x at query points (3 values only).
+
+        Computed without subtracting two large coordinates, so it stays accurate far
+        from the origin.
+
+        Parameters
+        ----------
+        points : array_like, shape (m, 3)
+            Query positions x in mm.
+
+        Returns
+        -------
+        numpy.ndarray, shape (m, 3)
+            f(x) - x in mm.
+        """
+        if self._n_values != 3:
+            raise ValueError(
+                f"displacement needs values with 3 columns (a map of 3D points), "
+                f"this RBF has {self._n_values}")
+        queries = as_points(points, "points")
+        return self._model.displacement(queries)
+
+    def evaluation_matrix(self, points) -> np.ndarray:
+        """The matrix E with ``E @ coefficients == f(points)``.
+
+        ``E = [phi(|x - p_j|) for each centre j | 1 x y z]``, in the original
+        coordinates. Because f is linear in the values, E lets a caller apply many
+        value sets (animation frames, say) to the same points with one product.
+
+        Parameters
+        ----------
+        points : array_like, shape (m, 3)
+            Query positions in mm.
+
+        Returns
+        -------
+        numpy.ndarray, shape (m, n + 4)
+
+        Raises
+        ------
+        ValueError
+            If m * (n + 4) exceeds the dense-array budget
+            (``_validation.MAX_DENSE_ELEMENTS``); evaluate in chunks of rows instead.
+        """
+        # The size is checked before any conversion, which could itself copy a
+        # large (for example broadcast) input.
+        shape = np.shape(points)
+        columns = len(self._centres) + 4
+        if len(shape) == 2 and shape[0] * columns > MAX_DENSE_ELEMENTS:
+            raise ValueError(
+                f"points: the evaluation matrix would be {shape[0]} x {columns} "
+                f"= {shape[0] * columns:.3g} float64 values, more than the "
+                f"limit of {MAX_DENSE_ELEMENTS:.3g}; pass the points in chunks of at "
+                f"most {max(1, MAX_DENSE_ELEMENTS // columns)} rows")
+        queries = as_points(points, "points")
+        return self._model.evaluation_matrix(queries)
+
+    # --- the fitted model -----------------------------------------------------------
+    @property
+    def kernel(self) -> str:
+        """Name of the radial function phi."""
+        return self._kernel
+
+    @property
+    def smoothing(self) -> float:
+        """lambda >= 0 as passed (units of phi)."""
+        return self._model.smoothing
+
+    @property
+    def epsilon(self) -> float | None:
+        """Shape parameter in 1/mm (gaussian, multiquadric), else None."""
+        return self._model.epsilon if self._kernel in _KERNELS_WITH_EPSILON else None
+
+    @property
+    def centres(self) -> np.ndarray:
+        """(n, 3) centres in mm (read-only)."""
+        return self._centres
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(n, k) radial weights W in original coordinates (read-only)."""
+        return self._weights
+
+    @property
+    def affine(self) -> np.ndarray:
+        """(4, k) affine part A (rows: constant, x, y, z) in original coordinates (read-only)."""
+        return self._affine
+
+    @property
+    def coefficients(self) -> np.ndarray:
+        """(n + 4, k) ``[weights; affine]``, matching :meth:`evaluation_matrix` (read-only)."""
+        return self._coefficients
+
+    @property
+    def bending_energy(self) -> float:
+        """``trace(W^T K W)``, K the centres' kernel matrix without smoothing.
+
+        In original coordinates, units values^2 / phi. For tps and triharmonic it is
+        >= 0 and proportional to the bending energy the spline minimises; for
+        biharmonic and multiquadric it is <= 0 (their kernels are conditionally
+        negative definite). It is not invariant to a change of length units.
+        """
+        return self._model.bending_energy
+
+    @property
+    def condition_number(self) -> float:
+        """Estimated 1-norm condition number of the solved (normalised) system.
+
+        The reciprocal of the LU's ``rcond`` estimate for the saddle-point matrix in
+        the centred and scaled coordinates the fit uses (not of the system in the
+        original coordinates, which is usually far worse conditioned).
+        """
+        return 1.0 / self._model.rcond
+
+    def __repr__(self) -> str:
+        extra = f", epsilon={self._model.epsilon:g}" if self.epsilon is not None else ""
+        return (f"{type(self).__name__}(kernel={self._kernel!r}, centres={len(self._centres)}, "
+                f"values={self._n_values}, smoothing={self.smoothing:g}{extra}, "
+                f"condition_number={self.condition_number:.3g})")
+
+
+class TPS(RBF):
+    """The 3D thin-plate spline that maps source points onto target points.
+
+    ``TPS(source, target)(source) == target`` (to rounding; approximately with
+    smoothing > 0). This is :class:`RBF` with kernel ``"tps"`` (U(r) = r^2 ln r^2) and
+    values = target; ``displacement(x)`` is the warp's f(x) - x.
+
+    Parameters
+    ----------
+    source : array_like, shape (n, 3)
+        Source landmarks in mm (n >= 5, distinct, not coplanar).
+    target : array_like, shape (n, 3)
+        Where each source landmark goes, in mm.
+    smoothing : float, optional
+        lambda >= 0 in mm^2 (see :class:`RBF`); 0 interpolates exactly.
+    """
+
+    __slots__ = ()
+
+    def __init__(self, source, target, smoothing: float = 0.0):
+        source_array = as_points(source, "source")
+        target_array = as_points(target, "target")
+        if len(target_array) != len(source_array):
+            raise ValueError(
+                f"target must have one row per source point: source has "
+                f"{len(source_array)}, target has {len(target_array)}")
+        super().__init__(source_array, target_array, "tps", smoothing=smoothing)
+
+    def __repr__(self) -> str:
+        return (f"TPS(centres={len(self._centres)}, smoothing={self.smoothing:g}, "
+                f"condition_number={self.condition_number:.3g})")
