@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from . import datasets, render
 from ._core import num_threads, set_num_threads
+from .elastic import ElasticFace, ExpressionSet
 from .mesh import (
     MeanCurvature,
     boundary_vertices,
@@ -18,7 +19,9 @@ from .mesh import (
     vertex_normals,
     voronoi_areas,
 )
+from .muscles import LinearMuscle, MuscleModel, SphincterMuscle
 from .rbf import RBF, RBF_KERNELS, TPS
+from .sparse import SparseCholesky
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
 
 __version__ = "0.1.0"
@@ -45,4 +48,12 @@ __all__ = [
     "mean_curvature",
     "vertex_normals",
     "voronoi_areas",
+    # sparse direct solve
+    "SparseCholesky",
+    # elastic expression model
+    "ElasticFace",
+    "ExpressionSet",
+    "LinearMuscle",
+    "MuscleModel",
+    "SphincterMuscle",
 ]
