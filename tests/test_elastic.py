@@ -285,6 +285,9 @@ def test_other_bad_input_gets_clear_errors(procedural_elastic):
     two_parts = np.concatenate([faces, faces + len(vertices)])
     with pytest.raises(ValueError, match="no control point and no fixed vertex"):
         ElasticFace(np.concatenate([vertices, vertices + [20, 0, 0]]), two_parts, [60], fixed=[])
+    island = ElasticFace(np.concatenate([vertices, vertices + [20, 0, 0]]), two_parts, [60], fixed=[],
+                         unanchored="fix")
+    assert island.fixed[len(vertices):].all() and not island.fixed[:len(vertices)].any()
     fresh = ElasticFace(vertices, faces, [60], fixed=[0])
     with pytest.raises(ValueError, match="call fit"):
         fresh.blend([1.0])
@@ -307,3 +310,30 @@ def test_ict_face_reconstructs_expressions(shared):
     # 47 handles explain most of these local shapes: the residual stays under half of
     # the motion (measured 0.31-0.46; the brows' motion reaches into the fixed forehead).
     assert np.all(learned.rms_mm < 0.5 * learned.motion_rms_mm)
+
+
+def test_cli_fits_and_clones_npz_inputs_with_pictures(procedural_face, tmp_path):
+    import argparse
+
+    from tpscore.elastic_cli import add_elastic_parser
+
+    vertices, faces, landmarks = procedural_face
+    source_face = ElasticFace(vertices, faces, landmarks=landmarks)
+    params = np.random.default_rng(9).normal(size=(2, 47, 3))
+    np.savez(tmp_path / "src.npz", neutral=vertices, faces=faces, landmarks=landmarks,
+             expressions=source_face.deform(params), names=np.array(["a", "b"]))
+    np.savez(tmp_path / "tgt.npz", vertices=vertices * 1.1, faces=faces, landmarks=landmarks * 1.1)
+    parser = argparse.ArgumentParser(prog="tpscore")
+    add_elastic_parser(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["elastic", "--source", str(tmp_path / "src.npz"), "--target", str(tmp_path / "tgt.npz"),
+                              "--out", str(tmp_path / "out"), "--quiet"])
+    assert args.func(args) == 0
+    result = np.load(tmp_path / "out" / "elastic.npz")
+    # Exactly representable examples: recovered to rounding; a 1.1x scaled copy of the
+    # face takes 1.1x the displacements.
+    assert np.abs(result["source_parameters"] - params).max() < 1e-8
+    assert np.abs(result["target_parameters"] - 1.1 * params).max() < 1e-6
+    assert (tmp_path / "out" / "a.png").is_file() and (tmp_path / "out" / "report.md").is_file()
+    bad = parser.parse_args(["elastic", "--source", str(tmp_path / "src.npz"), "--out", str(tmp_path / "x")])
+    with pytest.raises(ValueError, match="--target is needed"):
+        bad.func(bad)

@@ -461,6 +461,10 @@ class ElasticFace:
         length: stretching dominates above features wider than sqrt(k_b / k_s) mm.
     names : sequence of str, optional
         Names of the control points when they are given as indices.
+    unanchored : {"error", "fix"}, default "error"
+        What to do with a connected part of the mesh that has neither a control point
+        nor a fixed vertex (its position would be undetermined): raise, or hold it
+        still (scans often carry small islands of this kind, e.g. inside a nostril).
 
     Raises
     ------
@@ -477,7 +481,8 @@ class ElasticFace:
 
     def __init__(self, vertices, faces, control_points=None, *, landmarks=None, fixed=None,
                  fixed_factor: float = DEFAULT_FIXED_FACTOR, stretching: float = 0.0,
-                 bending: float = 1.0, names: Sequence[str] | None = None):
+                 bending: float = 1.0, names: Sequence[str] | None = None,
+                 unanchored: str = "error"):
         vertices = as_points(vertices, "vertices", allow_empty=False).copy()
         faces = as_faces(faces, len(vertices)).copy()
         if len(faces) == 0:
@@ -547,7 +552,9 @@ class ElasticFace:
         self._fixed = fixed_mask
         self._stretching = stretching
         self._bending = bending
-        self._check_anchored()
+        if unanchored not in ("error", "fix"):
+            raise ValueError(f"unanchored must be 'error' or 'fix', got {unanchored!r}")
+        self._check_anchored(fix=unanchored == "fix")
         self._timings: dict[str, float] = {}
         self._basis = self._compute_basis()
         self._qr = None
@@ -556,8 +563,9 @@ class ElasticFace:
             array.setflags(write=False)
 
     # ---------------------------------------------------------------- the deformer
-    def _check_anchored(self) -> None:
-        """Every connected part of the mesh needs a handle or a fixed vertex."""
+    def _check_anchored(self, fix: bool) -> None:
+        """Every connected part of the mesh needs a handle or a fixed vertex (or, with
+        ``fix``, is held still whole)."""
         n = len(self._vertices)
         edges = np.concatenate([self._faces[:, [0, 1]], self._faces[:, [1, 2]], self._faces[:, [2, 0]]])
         graph = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
@@ -565,7 +573,9 @@ class ElasticFace:
         anchored = np.zeros(count, dtype=bool)
         anchored[labels[self._handles]] = True
         anchored[labels[self._fixed]] = True
-        if not anchored.all():
+        if fix:
+            self._fixed |= ~anchored[labels]
+        elif not anchored.all():
             part = np.flatnonzero(~anchored)[0]
             size = int((labels == part).sum())
             raise ValueError(
@@ -855,7 +865,7 @@ class ElasticFace:
             The target's landmarks (mm) when ``target`` is a mesh.
         **face_options
             Passed to the target's :class:`ElasticFace` (fixed, fixed_factor, stretching,
-            bending).
+            bending, unanchored).
 
         Returns
         -------
