@@ -3,6 +3,7 @@
 // releases the GIL, and results are returned as owning NumPy arrays.
 #include <nanobind/eigen/dense.h>
 #include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
 
 #include "tpscore/rbf.hpp"
 
@@ -15,6 +16,13 @@ namespace {
 // silent copy here would hide a missed conversion.
 using PointsIn = nb::DRef<const tpscore::Points>;
 using MatrixIn = nb::DRef<const tpscore::MatrixX>;
+// A writable C-contiguous float64 NumPy array, filled in place (never a copy).
+using MatrixOut = nb::ndarray<double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+
+Eigen::Map<tpscore::MatrixX> as_eigen(MatrixOut& out) {
+    return {out.data(), static_cast<Eigen::Index>(out.shape(0)),
+            static_cast<Eigen::Index>(out.shape(1))};
+}
 
 }  // namespace
 
@@ -38,18 +46,21 @@ void bind_rbf(nb::module_& m) {
         .def_prop_ro("bending_energy", [](const tpscore::RbfModel& s) { return s.bending_energy; })
         .def_prop_ro("rcond", [](const tpscore::RbfModel& s) { return s.rcond; })
         .def_prop_ro("scale", [](const tpscore::RbfModel& s) { return s.scale; })
-        .def("evaluate",
-             [](const tpscore::RbfModel& s, PointsIn queries) {
-                 return tpscore::rbf_evaluate(s, queries, false);
+        // Python allocates the output and the kernel fills it in place: a caller
+        // evaluating animation frames can reuse one buffer, and the returned array is
+        // an ordinary NumPy array (no capsule-owned Eigen storage).
+        .def("evaluate_into",
+             [](const tpscore::RbfModel& s, PointsIn queries, MatrixOut out) {
+                 tpscore::rbf_evaluate(s, queries, false, as_eigen(out));
              },
-             "queries"_a, nb::call_guard<nb::gil_scoped_release>(),
-             "f at (m, 3) queries: (m, k).")
-        .def("displacement",
-             [](const tpscore::RbfModel& s, PointsIn queries) {
-                 return tpscore::rbf_evaluate(s, queries, true);
+             "queries"_a, "out"_a.noconvert(), nb::call_guard<nb::gil_scoped_release>(),
+             "Write f at (m, 3) queries into out (m, k), C-contiguous float64.")
+        .def("displacement_into",
+             [](const tpscore::RbfModel& s, PointsIn queries, MatrixOut out) {
+                 tpscore::rbf_evaluate(s, queries, true, as_eigen(out));
              },
-             "queries"_a, nb::call_guard<nb::gil_scoped_release>(),
-             "f(x) - x at (m, 3) queries: (m, 3); needs k == 3.")
+             "queries"_a, "out"_a.noconvert(), nb::call_guard<nb::gil_scoped_release>(),
+             "Write f(x) - x at (m, 3) queries into out (m, 3); needs k == 3.")
         .def("evaluation_matrix",
              [](const tpscore::RbfModel& s, PointsIn queries) {
                  return tpscore::rbf_evaluation_matrix(s, queries);

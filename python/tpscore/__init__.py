@@ -9,6 +9,17 @@ from __future__ import annotations
 from . import datasets, render
 from ._core import num_threads, set_num_threads
 from .elastic import ElasticFace, ExpressionSet
+from .io import (
+    BntScan,
+    read_bnt,
+    read_landmarks,
+    read_lm3,
+    read_mesh,
+    write_bnt,
+    write_landmarks,
+    write_lm3,
+    write_mesh,
+)
 from .mesh import (
     MeanCurvature,
     boundary_vertices,
@@ -20,6 +31,7 @@ from .mesh import (
     voronoi_areas,
 )
 from .muscles import LinearMuscle, MuscleModel, SphincterMuscle
+from .preprocess import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, resample_scan
 from .rbf import RBF, RBF_KERNELS, TPS
 from .sparse import SparseCholesky
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
@@ -27,16 +39,34 @@ from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_
 __version__ = "0.1.0"
 
 __all__ = [
+    # kernels
+    "RBF",
+    "RBF_KERNELS",
+    "TPS",
     "ClosestPoints",
     "KDTree",
     "MeshSurface",
     "RayHits",
     "closest_point_on_mesh",
-    "RBF",
-    "RBF_KERNELS",
-    "TPS",
     "num_threads",
     "set_num_threads",
+    # scan and mesh files
+    "BntScan",
+    "read_bnt",
+    "write_bnt",
+    "read_lm3",
+    "write_lm3",
+    "read_landmarks",
+    "write_landmarks",
+    "read_mesh",
+    "write_mesh",
+    # preprocessing
+    "FaceGrid",
+    "GridMesh",
+    "LandmarkSnapWarning",
+    "resample_scan",
+    "load_scan",
+    # submodules
     "datasets",
     "render",
     # mesh operators

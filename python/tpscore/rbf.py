@@ -235,7 +235,9 @@ class RBF:
             f at each point (k columns even when the values were 1-D).
         """
         queries = as_points(points, "points")
-        return self._model.evaluate(queries)
+        result = np.empty((len(queries), self._n_values))
+        self._model.evaluate_into(queries, result)
+        return result
 
     def displacement(self, points) -> np.ndarray:
         """Evaluate the displacement f(x) - x at query points (3 values only).
@@ -258,7 +260,9 @@ class RBF:
                 f"displacement needs values with 3 columns (a map of 3D points), "
                 f"this RBF has {self._n_values}")
         queries = as_points(points, "points")
-        return self._model.displacement(queries)
+        result = np.empty((len(queries), 3))
+        self._model.displacement_into(queries, result)
+        return result
 
     def evaluation_matrix(self, points) -> np.ndarray:
         """The matrix E with ``E @ coefficients == f(points)``.
@@ -347,8 +351,10 @@ class RBF:
         """Estimated 1-norm condition number of the solved (normalised) system.
 
         The reciprocal of the LU's ``rcond`` estimate for the saddle-point matrix in
-        the centred and scaled coordinates the fit uses (not of the system in the
-        original coordinates, which is usually far worse conditioned).
+        the centred and scaled coordinates the fit uses, with the [1 x y z] rows and
+        columns scaled to the kernel block (not of the system in the original
+        coordinates, which is usually far worse conditioned). A fit whose estimate
+        exceeds 1 / machine epsilon is refused as numerically singular.
         """
         return 1.0 / self._model.rcond
 

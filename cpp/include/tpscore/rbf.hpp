@@ -66,7 +66,8 @@ struct RbfModel {
     /// it is <= 0 (their kernels are conditionally negative definite).
     double bending_energy = 0.0;
     /// Eigen's PartialPivLU::rcond(): an estimate of the reciprocal of the 1-norm
-    /// condition number of the normalised saddle-point matrix.
+    /// condition number of the saddle-point matrix that was factorised (normalised
+    /// coordinates, polynomial rows and columns scaled to the kernel block).
     double rcond = 0.0;
 
     // --- the normalised form that evaluation uses --------------------------------
@@ -99,9 +100,14 @@ struct RbfModel {
 RbfModel rbf_fit(const PointsRef& centres, const MatrixRef& values, RbfKernel kernel,
                  double epsilon, double smoothing);
 
-/// f at each row of `queries` (m, 3): returns (m, k). With `displacement`, returns
-/// f(x) - x instead (requires k == 3). Forms no (m, n) temporary; threaded over
-/// blocks of query rows; the result does not depend on the thread count.
+/// Writes f at each row of `queries` (m, 3) into `out` (m, k). With `displacement`,
+/// writes f(x) - x instead (requires k == 3). Forms no (m, n) temporary; threaded
+/// over blocks of query rows; the result does not depend on the thread count.
+/// The caller allocates `out` (Python passes a NumPy array: see the binding).
+void rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool displacement,
+                  Eigen::Ref<MatrixX> out);
+
+/// As above, returning a new (m, k) matrix.
 MatrixX rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool displacement);
 
 /// The (m, n + 4) evaluation matrix E = [phi(|x - p_j|) | 1 x y z] in original

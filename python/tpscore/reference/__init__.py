@@ -1,4 +1,3 @@
-"""Plain NumPy reference implementations of the compiled kernels, one module per family.
-
-They are slow and obviously correct; the tests compare the compiled core against them.
-"""
+"""Plain NumPy reference implementations of the compiled kernels, one module per
+kernel family. They favour being obviously correct over speed or memory: tests
+compare the compiled core against them, and benchmarks report the speed-up."""
