@@ -1,5 +1,49 @@
+// Bindings of the mesh operators. Inputs arrive validated (C-contiguous float64
+// vertices, int64 faces in range) from tpscore.mesh; outputs are owning NumPy arrays.
+#include <nanobind/eigen/dense.h>
 #include <nanobind/nanobind.h>
+#include <nanobind/stl/tuple.h>
+
+#include "tpscore/mesh_ops.hpp"
 
 namespace nb = nanobind;
+using namespace nb::literals;
 
-void bind_mesh_ops(nb::module_& m) { (void)m; }
+void bind_mesh_ops(nb::module_& m) {
+    using tpscore::FacesRef;
+    using tpscore::PointsRef;
+    const auto release = nb::call_guard<nb::gil_scoped_release>();
+
+    m.def("face_normals", &tpscore::face_normals, "vertices"_a, "faces"_a, release,
+          "Unit face normals (m, 3); zero for zero-area faces.");
+    m.def(
+        "vertex_normals",
+        [](const PointsRef& vertices, const FacesRef& faces, int weighting) {
+            return tpscore::vertex_normals(vertices, faces,
+                                           static_cast<tpscore::NormalWeighting>(weighting));
+        },
+        "vertices"_a, "faces"_a, "weighting"_a, release,
+        "Unit vertex normals (n, 3); weighting 0 = area, 1 = angle, 2 = uniform.");
+    m.def(
+        "cotan_laplacian",
+        [](const PointsRef& vertices, const FacesRef& faces) {
+            tpscore::CsrMatrix csr = tpscore::cotan_laplacian(vertices, faces);
+            return std::make_tuple(std::move(csr.values), std::move(csr.indices),
+                                   std::move(csr.indptr));
+        },
+        "vertices"_a, "faces"_a, release,
+        "Cotangent Laplacian as CSR arrays (data, indices, indptr).");
+    m.def("voronoi_areas", &tpscore::voronoi_areas, "vertices"_a, "faces"_a, release,
+          "Mixed Voronoi area per vertex (n,).");
+    m.def("boundary_vertices", &tpscore::boundary_vertices, "n_vertices"_a, "faces"_a, release,
+          "Per-vertex mask: on an edge without exactly two faces.");
+    m.def(
+        "mean_curvature",
+        [](const PointsRef& vertices, const FacesRef& faces) {
+            tpscore::MeanCurvature result = tpscore::mean_curvature(vertices, faces);
+            return std::make_tuple(std::move(result.values), std::move(result.normals),
+                                   std::move(result.boundary));
+        },
+        "vertices"_a, "faces"_a, release,
+        "Mean curvature H (n,), mean-curvature normal (n, 3), boundary mask (n,).");
+}

@@ -21,6 +21,7 @@ from .expression_transfer import (
     normalise_face,
     transfer,
 )
+from .elastic import ElasticFace, ExpressionSet
 from .io import (
     BntScan,
     read_bnt,
@@ -32,9 +33,21 @@ from .io import (
     write_lm3,
     write_mesh,
 )
-from .preprocess import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, resample_scan
+from .mesh import (
+    MeanCurvature,
+    boundary_vertices,
+    cotan_laplacian,
+    face_normals,
+    mass_matrix,
+    mean_curvature,
+    vertex_normals,
+    voronoi_areas,
+)
+from .muscles import LinearMuscle, MuscleModel, SphincterMuscle
 from .normalise import FrameTransform, similarity_transform, thesis_affine_transform
+from .preprocess import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, resample_scan
 from .rbf import RBF, RBF_KERNELS, TPS
+from .sparse import SparseCholesky
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
 
 __version__ = "0.1.0"
@@ -90,4 +103,21 @@ __all__ = [
     # submodules
     "datasets",
     "render",
+    # mesh operators
+    "MeanCurvature",
+    "boundary_vertices",
+    "cotan_laplacian",
+    "face_normals",
+    "mass_matrix",
+    "mean_curvature",
+    "vertex_normals",
+    "voronoi_areas",
+    # sparse direct solve
+    "SparseCholesky",
+    # elastic expression model
+    "ElasticFace",
+    "ExpressionSet",
+    "LinearMuscle",
+    "MuscleModel",
+    "SphincterMuscle",
 ]

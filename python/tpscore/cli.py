@@ -4,6 +4,7 @@
                      [--out result.npz] [--mesh result.obj] [--png result.png] [--gif sweep.gif]
     tpscore demo [--out DIR]
     tpscore build-afm [--out average_face.npz]
+    tpscore elastic --face-model face_model.npz --out DIR   (fit and clone expressions)
 
 Errors are reported as one line on stderr (exit status 2), not as a traceback.
 """
@@ -16,6 +17,8 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+
+from .elastic_cli import add_elastic_parser, elastic_command
 
 __all__ = ["main"]
 
@@ -129,6 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="run the whole pipeline on embedded faces; write meshes and pictures")
     d.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
     d.add_argument("--quiet", action="store_true")
+    add_elastic_parser(sub)
     b = sub.add_parser("build-afm", help="rebuild the average face model from the procedural faces")
     b.add_argument("--out", default="average_face.npz")
     b.add_argument("--grid", default="150x150")
@@ -139,7 +143,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    handlers = {"transfer": run_transfer, "demo": run_demo, "build-afm": run_build_afm}
+    handlers = {"transfer": run_transfer, "demo": run_demo, "build-afm": run_build_afm,
+                "elastic": elastic_command}
     with warnings.catch_warnings():
         warnings.simplefilter("default")
         warnings.showwarning = lambda message, *_args, **_kw: print(

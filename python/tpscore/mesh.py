@@ -1,0 +1,233 @@
+"""Discrete differential operators on triangle meshes.
+
+Normals, the cotangent Laplacian, mixed Voronoi areas and mean curvature after
+Meyer, Desbrun, Schroeder and Barr, "Discrete differential-geometry operators for
+triangulated 2-manifolds" (2003). Units follow the vertices (mm): areas in mm^2,
+curvature in 1/mm.
+
+Conventions shared by every function here:
+
+- ``vertices`` is (n, 3) array-like, ``faces`` (m, 3) integer vertex indices in
+  [0, n). Faces are oriented by the right-hand rule: the normal of face (a, b, c)
+  is along (b - a) x (c - a).
+- A face that repeats a vertex index (a "collapsed" face) contributes nothing.
+- Zero-area faces never produce NaN or inf: the cotangent of a corner angle is
+  clamped to [-1e4, 1e4] (angles below about 1e-4 rad, which a well-formed mesh
+  never has; the exact value there is infinite). Quantities next to such faces are
+  finite but not meaningful.
+- Non-manifold input (an edge with three or more faces) is accepted; each face adds
+  its own cotangent term, and its vertices count as boundary vertices.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import scipy.sparse as sp
+
+from . import _core
+from ._validation import as_faces, as_points
+
+__all__ = [
+    "MeanCurvature",
+    "face_normals",
+    "vertex_normals",
+    "cotan_laplacian",
+    "voronoi_areas",
+    "mass_matrix",
+    "boundary_vertices",
+    "mean_curvature",
+]
+
+_NORMAL_WEIGHTINGS = {"area": 0, "angle": 1, "uniform": 2}
+
+
+def _mesh(vertices, faces):
+    vertices = as_points(vertices, "vertices")
+    faces = as_faces(faces, len(vertices), "faces")
+    return vertices, faces
+
+
+def face_normals(vertices, faces) -> np.ndarray:
+    """Unit normal of every face.
+
+    Parameters
+    ----------
+    vertices : array_like, shape (n, 3)
+        Vertex positions, mm.
+    faces : array_like of int, shape (m, 3)
+        Triangles as vertex indices.
+
+    Returns
+    -------
+    ndarray, shape (m, 3)
+        Unit normals along (b - a) x (c - a); zero rows for zero-area faces.
+    """
+    vertices, faces = _mesh(vertices, faces)
+    return _core.face_normals(vertices, faces)
+
+
+def vertex_normals(vertices, faces, *, weighting: str = "area") -> np.ndarray:
+    """Unit normal of every vertex: a weighted mean of its faces' unit normals.
+
+    Parameters
+    ----------
+    vertices : array_like, shape (n, 3)
+        Vertex positions, mm.
+    faces : array_like of int, shape (m, 3)
+        Triangles as vertex indices.
+    weighting : {"area", "angle", "uniform"}
+        Weight of each incident face: its area (default), its corner angle at the
+        vertex, or 1.
+
+    Returns
+    -------
+    ndarray, shape (n, 3)
+        Unit normals. A vertex in no face, only in zero-area faces, or whose face
+        normals cancel (e.g. two faces folded back onto each other) gets a zero row
+        rather than NaN, so the result can be used directly in arithmetic;
+        test ``np.linalg.norm(normals, axis=1) == 0`` to find such vertices.
+    """
+    if weighting not in _NORMAL_WEIGHTINGS:
+        raise ValueError(f"weighting must be one of {sorted(_NORMAL_WEIGHTINGS)}, got {weighting!r}")
+    vertices, faces = _mesh(vertices, faces)
+    return _core.vertex_normals(vertices, faces, _NORMAL_WEIGHTINGS[weighting])
+
+
+def cotan_laplacian(vertices, faces) -> sp.csr_matrix:
+    """The cotangent Laplacian L, a sparse (n, n) matrix.
+
+    L_ij = (cot alpha_ij + cot beta_ij) / 2 for every edge ij, with alpha and beta
+    the angles opposite the edge (a single term on a boundary edge), and
+    L_ii = -sum_j L_ij. This is the negative semi-definite convention: L is
+    symmetric, L @ constant = 0, and the Laplace-Beltrami operator is
+    Delta f ~= M^-1 L f with M = :func:`mass_matrix`. For a linear function on a
+    flat mesh, (L f)_i = 0 at every interior vertex.
+
+    Parameters
+    ----------
+    vertices : array_like, shape (n, 3)
+        Vertex positions, mm.
+    faces : array_like of int, shape (m, 3)
+        Triangles as vertex indices.
+
+    Returns
+    -------
+    scipy.sparse.csr_matrix, shape (n, n)
+        Dimensionless weights; sorted column indices; the diagonal is stored for
+        every vertex (0 for a vertex in no face).
+    """
+    vertices, faces = _mesh(vertices, faces)
+    # The core builds the CSR arrays itself (sorted, duplicates merged): handing
+    # scipy the 6 m + n COO triplets instead costs more in coo.tocsr() alone (11 ms on a
+    # 300 x 300 grid) than the whole compiled assembly (about 9 ms).
+    data, indices, indptr = _core.cotan_laplacian(vertices, faces)
+    n = len(vertices)
+    return sp.csr_matrix((data, indices, indptr), shape=(n, n), copy=False)
+
+
+def voronoi_areas(vertices, faces) -> np.ndarray:
+    """Mixed Voronoi area of every vertex (Meyer et al.).
+
+    Each non-obtuse face gives each corner its Voronoi region (bounded by the
+    perpendicular bisectors of the edges); an obtuse face gives half its area to
+    the obtuse corner and a quarter to each of the others. The areas sum to the
+    total area of the mesh.
+
+    Parameters
+    ----------
+    vertices : array_like, shape (n, 3)
+        Vertex positions, mm.
+    faces : array_like of int, shape (m, 3)
+        Triangles as vertex indices.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        Areas, mm^2; 0 for a vertex in no face.
+    """
+    vertices, faces = _mesh(vertices, faces)
+    return _core.voronoi_areas(vertices, faces)
+
+
+def mass_matrix(vertices, faces) -> sp.csr_matrix:
+    """Diagonal (lumped) mass matrix M = diag(:func:`voronoi_areas`), sparse (n, n), mm^2."""
+    areas = voronoi_areas(vertices, faces)
+    return sp.diags(areas, format="csr")
+
+
+def boundary_vertices(faces, n_vertices: int | None = None) -> np.ndarray:
+    """Mask of the vertices on an edge that does not have exactly two faces.
+
+    That is the open boundary of the mesh (edges with one face) and, for
+    non-manifold input, vertices on edges with three or more faces: the vertices
+    where a one-ring formula such as :func:`mean_curvature` does not hold.
+
+    Parameters
+    ----------
+    faces : array_like of int, shape (m, 3)
+        Triangles as vertex indices.
+    n_vertices : int, optional
+        Length of the mask; by default one more than the largest index in faces.
+
+    Returns
+    -------
+    ndarray of bool, shape (n_vertices,)
+        False for vertices in no face.
+    """
+    faces_array = np.asarray(faces)
+    if n_vertices is None:
+        if faces_array.ndim != 2 or faces_array.shape[1] != 3:
+            raise ValueError(f"faces must have shape (m, 3), got {faces_array.shape}")
+        n_vertices = int(faces_array.max()) + 1 if faces_array.size else 0
+    elif isinstance(n_vertices, bool) or int(n_vertices) != n_vertices or n_vertices < 0:
+        raise ValueError(f"n_vertices must be a non-negative integer, got {n_vertices!r}")
+    faces_array = as_faces(faces_array, int(n_vertices), "faces")
+    return _core.boundary_vertices(int(n_vertices), faces_array)
+
+
+class MeanCurvature(NamedTuple):
+    """Mean curvature at the vertices of a mesh (see :func:`mean_curvature`)."""
+
+    values: np.ndarray
+    """(n,) signed mean curvature H, 1/mm; NaN where undefined."""
+    normals: np.ndarray
+    """(n, 3) mean-curvature normal K = 2 H n, 1/mm; NaN where undefined."""
+    boundary: np.ndarray
+    """(n,) bool, the :func:`boundary_vertices` mask."""
+
+
+def mean_curvature(vertices, faces) -> MeanCurvature:
+    """Mean curvature and mean-curvature normal at every vertex (Meyer et al.).
+
+    K(x_i) = 1 / (2 A_i) * sum_j (cot alpha_ij + cot beta_ij) (x_i - x_j) = 2 H n,
+    with A_i the mixed Voronoi area (:func:`voronoi_areas`). |H| = |K| / 2, and H
+    is positive where K points along the outward (area-weighted, right-hand-rule)
+    vertex normal: a sphere of radius R with outward-oriented faces has H = +1/R,
+    a plane H = 0, a saddle H of either sign. Where K is (nearly) tangent to the
+    vertex normal, which only happens on rough or folded meshes, the sign is not
+    meaningful.
+
+    The one-ring formula holds only where the faces around a vertex close into a
+    disc. On boundary vertices (:func:`boundary_vertices`, which includes
+    non-manifold edges) and on vertices with zero Voronoi area (in no face, or only
+    in zero-area faces) ``values`` and ``normals`` are NaN, so they cannot pass as
+    real curvature; mask them with ``~result.boundary`` or use ``np.nanmax`` /
+    ``np.nanargmax``.
+
+    Parameters
+    ----------
+    vertices : array_like, shape (n, 3)
+        Vertex positions, mm.
+    faces : array_like of int, shape (m, 3)
+        Triangles as vertex indices, consistently oriented (outward normals).
+
+    Returns
+    -------
+    MeanCurvature
+        ``values`` (n,) H in 1/mm, ``normals`` (n, 3) K in 1/mm, ``boundary`` (n,)
+        bool.
+    """
+    vertices, faces = _mesh(vertices, faces)
+    values, normals, boundary = _core.mean_curvature(vertices, faces)
+    return MeanCurvature(values, normals, boundary)
