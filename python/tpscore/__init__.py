@@ -6,6 +6,7 @@ kernels in ``tpscore._core`` are private.
 from __future__ import annotations
 
 from ._core import num_threads, set_num_threads
+from .csrbf import CSRBF, ConvergenceError, wendland
 from .mesh import (
     MeanCurvature,
     boundary_vertices,
@@ -24,6 +25,10 @@ __all__ = [
     "KDTree",
     "num_threads",
     "set_num_threads",
+    # compactly supported RBF
+    "CSRBF",
+    "ConvergenceError",
+    "wendland",
     # mesh operators
     "MeanCurvature",
     "boundary_vertices",
