@@ -308,5 +308,5 @@ def test_clustered_centres_converge_with_ilu():
     values = smooth_values(points)
     field = CSRBF(points, values, support_for(n, 45), preconditioner="ilu")
     assert (field.residuals <= 1e-10).all() and (field.iterations < 100).all()
-    # Interpolation error = residual * |b| (b = values here) / condition-free.
+    # Without the quadric b = values, so |f(p) - values| = residual * |values|.
     assert np.linalg.norm(field(points) - values, axis=0).max() <= 1e-10 * np.linalg.norm(values, axis=0).max()
