@@ -21,6 +21,7 @@ from .expression_transfer import (
     normalise_face,
     transfer,
 )
+from .csrbf import CSRBF, ConvergenceError, wendland
 from .elastic import ElasticFace, ExpressionSet
 from .io import (
     BntScan,
@@ -103,6 +104,10 @@ __all__ = [
     # submodules
     "datasets",
     "render",
+    # compactly supported RBF
+    "CSRBF",
+    "ConvergenceError",
+    "wendland",
     # mesh operators
     "MeanCurvature",
     "boundary_vertices",
