@@ -350,9 +350,35 @@ class Animation:
     def sweep(self, magnitudes: Sequence[float]) -> list[np.ndarray]:
         return [self.frame(m) for m in magnitudes]
 
+    @classmethod
+    def combine(cls, animations: Sequence["Animation"]) -> "Animation":
+        """One animation from several on the same target (e.g. each AU modelled from its
+        own expressive scan); their fields add, each keeping its own weight."""
+        animations = list(animations)
+        if not animations:
+            raise ValueError("combine needs at least one animation")
+        first = animations[0]
+        for other in animations[1:]:
+            if other.target.grid.points.shape != first.target.grid.points.shape or not np.array_equal(
+                    other.target.grid.points, first.target.grid.points, equal_nan=True):
+                raise ValueError("animations can only be combined on the same target grid")
+        labels = [label for a in animations for label in a.labels]
+        if len(set(labels)) != len(labels):
+            raise ValueError(f"the animations repeat AU labels: {labels}")
+        return cls(first.target, labels, np.concatenate([a.fields for a in animations]),
+                   [c for a in animations for c in a.control_points],
+                   [c for a in animations for c in a.moved_control_points])
+
 
 def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
-    """Animation: carry the modelled motion onto the target and precompute each AU's field."""
+    """Animation: carry the modelled motion onto the target and precompute the fields.
+
+    AUs of one region modelled from the same expressive scan share one warp (and one
+    field, labelled e.g. ``AU1+AU4``): that scan shows their combined motion, so a
+    control point two AUs share (the inner brow of AU1 and AU4) carries that motion
+    once, not once per AU. AUs modelled from different scans are combined with
+    :meth:`Animation.combine`, where their fields add.
+    """
     options = model.options
     to_target = landmark_map(model.source.landmarks, target.landmarks,
                              smoothing=options.landmark_smoothing,
@@ -365,13 +391,17 @@ def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
     grid = target.grid
     flat = grid.points.reshape(-1, 3)
     valid = grid.mask.ravel()
-    fields, controls, moved = [], [], []
+    by_region: dict[str, list[ControlPointMotion]] = {}
     for motion in model.motions:
-        region = motion.activation.action_unit.region
+        by_region.setdefault(motion.activation.action_unit.region, []).append(motion)
+    labels, fields, controls, moved = [], [], [], []
+    for region, motions in by_region.items():
         region_w = region_weight(region, grid.points, target.landmarks, options.transition_mm)
-        control = target.snap(to_target(motion.neutral), options.snap)
+        neutral = np.vstack([m.neutral for m in motions])
+        control = target.snap(to_target(neutral), options.snap)
         scale = lower_scale if region == "lower" else 1.0
-        displacement = motion.motion * scale
+        displacement = np.vstack([m.motion for m in motions]) * scale
+        # shared points land on one place: merged, their (equal) motions averaged
         centres, values = _dedupe(control, displacement)
         if options.anchors:
             anchors = _anchor_points(target, region_w, centres, options)
@@ -381,10 +411,11 @@ def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
         warp = TPS(centres, centres + values)
         field_flat = np.zeros_like(flat)
         field_flat[valid] = warp.displacement(flat[valid]) * region_w.ravel()[valid, None]
+        labels.append("+".join(m.activation.label for m in motions))
         fields.append(field_flat.reshape(grid.points.shape))
         controls.append(control)
         moved.append(control + displacement)
-    return Animation(target, model.labels, np.stack(fields), controls, moved)
+    return Animation(target, labels, np.stack(fields), controls, moved)
 
 
 # --------------------------------------------------------------------------- one call
