@@ -55,6 +55,10 @@ def _add_transfer(sub) -> None:
     p.add_argument("--mesh", metavar="OBJ|PLY", help="write the animated target as a mesh with u,v")
     p.add_argument("--png", metavar="PNG", help="write renders of source, expression, target and result")
     p.add_argument("--gif", metavar="GIF", help="write an animation of the magnitude sweep 0 -> m -> 0")
+    p.add_argument("--truth", metavar="D",
+                   help="a real expressive scan of the target: adds an error heat map to --png "
+                        "(surface distance after a rigid landmark alignment) and prints the RMS")
+    p.add_argument("--truth-landmarks", metavar="FILE", help="landmarks of D (default: D's .lm3)")
     p.add_argument("--quiet", action="store_true")
 
 
@@ -90,11 +94,22 @@ def run_transfer(args) -> int:
         mesh = result.target.grid.with_points(result.vertices).mesh()
         io.write_mesh(args.mesh, mesh.vertices, mesh.faces, uv=mesh.uv)
         progress.step(f"wrote {args.mesh}")
+    errors = None
+    if args.truth:
+        errors = _distance_to_truth(result, load_scan(args.truth, args.truth_landmarks, shape=shape))
+        valid = errors[np.isfinite(errors)]
+        progress.step(f"distance to the true expressive scan: rms {np.sqrt(np.mean(valid ** 2)):.2f} mm, "
+                      f"95th percentile {np.percentile(valid, 95):.2f} mm over {len(valid)} vertices")
     if args.png:
         images = [render.render_grid(g.points, g.mask) for g in grids]
         images.append(render.render_grid(result.vertices, result.mask))
         titles = ["source neutral", "source expressive", "target neutral",
                   f"target {'+'.join(result.animation.labels)} m={args.magnitude:g}"]
+        if errors is not None:
+            mesh = result.target.grid.with_points(result.vertices).mesh()
+            images.append(render.error_heatmap(mesh.vertices, mesh.faces,
+                                               np.nan_to_num(errors.reshape(-1)[mesh.grid_index])))
+            titles.append("distance to the true scan (mm)")
         render.save_png(args.png, render.side_by_side(images, titles))
         progress.step(f"wrote {args.png}")
     if args.gif:
@@ -103,6 +118,23 @@ def run_transfer(args) -> int:
         render.save_gif(args.gif, frames, fps=12)
         progress.step(f"wrote {args.gif}")
     return 0
+
+
+def _distance_to_truth(result, truth) -> np.ndarray:
+    """(H, W) distance (mm) from each animated target vertex to the true expressive
+    surface, after a rigid landmark alignment of the truth onto the target scan; NaN
+    where the vertex is invalid or its closest point lies on the truth's outline."""
+    from .normalise import similarity_transform
+    from .spatial import MeshSurface
+
+    target_landmarks = result.target.transform.apply_inverse(result.target.landmarks)
+    align = similarity_transform(truth.landmarks, target_landmarks, scale=False)
+    mesh = truth.mesh()
+    surface = MeshSurface(align.apply(mesh.vertices), mesh.faces)
+    distances = np.full(result.mask.shape, np.nan)
+    closest = surface.closest_point(result.vertices[result.mask])
+    distances[result.mask] = closest.distances
+    return distances
 
 
 def run_build_afm(args) -> int:
