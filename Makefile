@@ -15,7 +15,7 @@ $(VENV)/bin/python:
 
 # Reinstall whenever a source changes; the build folder makes it incremental.
 $(VENV)/.installed: $(VENV)/bin/python $(SOURCES)
-	$(PY) -m pip install --quiet ".[test]"
+	$(PY) -m pip install --quiet ".[test,bench]"
 	@touch $@
 
 install: $(VENV)/.installed
