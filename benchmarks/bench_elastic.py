@@ -26,6 +26,7 @@ import scipy.sparse.linalg as spla
 
 from shared_data import shared_dir
 from tpscore.elastic import ElasticFace
+from tpscore.mesh import height_field_remesh
 from tpscore.spatial import MeshSurface
 
 
@@ -73,35 +74,6 @@ class Model:
     def subject(self, subject: int) -> np.ndarray:
         weights = np.random.default_rng(subject).normal(size=len(self.identity_modes))
         return self.neutral + np.tensordot(weights, self.identity_modes, axes=1)
-
-
-def height_field_remesh(vertices, faces, crop_centre, rows=GRID, cols=GRID):
-    """Resample a mesh as a rows x cols grid seen along -z (front-most surface).
-
-    Returns the grid vertices and triangles (only cells whose corners all hit and whose
-    edges are under 4 cells long, so depth jumps are not bridged), and for each grid
-    vertex the source triangle and barycentric weights it came from.
-    """
-    near = np.linalg.norm(vertices - crop_centre, axis=1) <= CROP_MM
-    cropped = faces[near[faces].all(axis=1)]
-    x_range = vertices[near, 0].min(), vertices[near, 0].max()
-    y_range = vertices[near, 1].min(), vertices[near, 1].max()
-    x, y = np.meshgrid(np.linspace(*x_range, cols), np.linspace(y_range[1], y_range[0], rows))
-    origins = np.stack([x.ravel(), y.ravel(), np.full(x.size, vertices[:, 2].max() + 100.0)], axis=1)
-    hits = MeshSurface(vertices, cropped).intersect_rays(origins, np.tile([0.0, 0.0, -1.0], (x.size, 1)))
-    index = np.arange(rows * cols).reshape(rows, cols)
-    a, b, c, d = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
-    grid_faces = np.concatenate([np.stack([a, c, d], -1).reshape(-1, 3), np.stack([a, d, b], -1).reshape(-1, 3)])
-    grid_faces = grid_faces[hits.hit[grid_faces].all(axis=1)]
-    points = hits.points
-    spacing = max((x_range[1] - x_range[0]) / (cols - 1), (y_range[1] - y_range[0]) / (rows - 1))
-    edges = np.stack([np.linalg.norm(points[grid_faces[:, i]] - points[grid_faces[:, (i + 1) % 3]], axis=1)
-                      for i in range(3)], axis=1)
-    grid_faces = grid_faces[(edges < 4 * spacing).all(axis=1)]
-    used = np.unique(grid_faces)
-    renumber = np.full(rows * cols, -1)
-    renumber[used] = np.arange(len(used))
-    return points[used], renumber[grid_faces], cropped[hits.triangles[used]], hits.barycentric[used]
 
 
 def _rms(values) -> float:

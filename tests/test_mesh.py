@@ -409,3 +409,26 @@ def test_public_names_are_exported():
                  "mass_matrix", "mean_curvature", "boundary_vertices", "MeanCurvature"):
         assert getattr(tpscore, name) is getattr(mesh, name)
         assert name in tpscore.__all__
+
+
+def test_height_field_remesh_resamples_the_front_surface():
+    # a hemisphere of radius 40 seen from +z: every grid vertex lies on it, and the
+    # source triangle + barycentric weights give back the same point
+    from tpscore.mesh import height_field_remesh
+
+    theta, phi = np.meshgrid(np.linspace(0, np.pi / 2, 30), np.linspace(0, 2 * np.pi, 60, endpoint=False))
+    points = 40.0 * np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1)
+    vertices = points.reshape(-1, 3)
+    index = np.arange(vertices.shape[0]).reshape(60, 30)
+    a, b = index[:, :-1], np.roll(index, -1, axis=0)[:, :-1]
+    c, d = index[:, 1:], np.roll(index, -1, axis=0)[:, 1:]
+    faces = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+    remeshed = height_field_remesh(vertices, faces, [0.0, 0.0, 40.0], shape=(40, 40), crop_mm=200.0)
+    assert len(remeshed.faces) > 1000
+    radius = np.linalg.norm(remeshed.vertices, axis=1)
+    # flat facets of a 3 x 6 degree tessellation sit inside the sphere by < 0.3 mm
+    assert np.abs(radius - 40.0).max() < 0.3
+    rebuilt = np.einsum("ki,kij->kj", remeshed.barycentric, vertices[remeshed.source_corners])
+    assert np.abs(rebuilt - remeshed.vertices).max() < 1e-9
+    with pytest.raises(ValueError, match="crop_mm"):
+        height_field_remesh(vertices, faces, [500.0, 0.0, 0.0], crop_mm=1.0)

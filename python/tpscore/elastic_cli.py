@@ -67,35 +67,11 @@ def _subject(model: dict, subject: int) -> np.ndarray:
     return model["neutral"].astype(np.float64) + np.tensordot(weights, model["identity_modes"].astype(np.float64), 1)
 
 
-def _height_field(vertices, faces, centre, size=150, crop_mm=100.0):
-    """A size x size grid resampling of the front-most surface along -z, within crop_mm
-    of ``centre``; cells spanning depth jumps (edges over 4 cells) are dropped."""
-    from .spatial import MeshSurface
-
-    near = np.linalg.norm(vertices - centre, axis=1) <= crop_mm
-    cropped = faces[near[faces].all(axis=1)]
-    lo, hi = vertices[near, :2].min(axis=0), vertices[near, :2].max(axis=0)
-    x, y = np.meshgrid(np.linspace(lo[0], hi[0], size), np.linspace(hi[1], lo[1], size))
-    origins = np.stack([x.ravel(), y.ravel(), np.full(x.size, vertices[:, 2].max() + 100.0)], axis=1)
-    hits = MeshSurface(vertices, cropped).intersect_rays(origins, np.tile([0.0, 0.0, -1.0], (x.size, 1)))
-    index = np.arange(size * size).reshape(size, size)
-    a, b, c, d = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
-    grid = np.concatenate([np.stack([a, c, d], -1).reshape(-1, 3), np.stack([a, d, b], -1).reshape(-1, 3)])
-    grid = grid[hits.hit[grid].all(axis=1)]
-    spacing = float(max(hi - lo) / (size - 1))
-    points = hits.points
-    edges = np.stack([np.linalg.norm(points[grid[:, i]] - points[grid[:, (i + 1) % 3]], axis=1) for i in range(3)], 1)
-    grid = grid[(edges < 4 * spacing).all(axis=1)]
-    used = np.unique(grid)
-    renumber = np.full(size * size, -1)
-    renumber[used] = np.arange(len(used))
-    return points[used], renumber[grid]
-
-
 def elastic_command(args) -> int:
     """Run ``tpscore elastic`` from parsed arguments; returns the exit status."""
     from . import render
     from .elastic import ElasticFace
+    from .mesh import height_field_remesh
 
     start = time.perf_counter()
 
@@ -122,7 +98,7 @@ def elastic_command(args) -> int:
         target_landmarks = target_vertices[index]
         target_faces = faces
         if args.remesh_target:
-            target_vertices, target_faces = _height_field(target_vertices, faces, target_landmarks[13])
+            target_vertices, target_faces, _, _ = height_field_remesh(target_vertices, faces, target_landmarks[13])
         step(f"built ICT subjects {args.source_subject} (source) and {args.target_subject} (target)")
     else:
         if not args.target:

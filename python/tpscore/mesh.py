@@ -231,3 +231,50 @@ def mean_curvature(vertices, faces) -> MeanCurvature:
     vertices, faces = _mesh(vertices, faces)
     values, normals, boundary = _core.mean_curvature(vertices, faces)
     return MeanCurvature(values, normals, boundary)
+
+
+class HeightFieldMesh(NamedTuple):
+    """A mesh resampled as a grid seen along -z (see :func:`height_field_remesh`)."""
+
+    vertices: np.ndarray          # (k, 3) grid vertices that hit the surface, mm
+    faces: np.ndarray             # (t, 3) triangles over them
+    source_corners: np.ndarray    # (k, 3) vertex indices of the input triangle each lies on
+    barycentric: np.ndarray       # (k, 3) its weights on that triangle
+
+
+def height_field_remesh(vertices, faces, centre, *, shape=(150, 150), crop_mm: float = 100.0,
+                        max_edge_cells: float = 4.0) -> HeightFieldMesh:
+    """Resample a mesh as a regular grid of its front-most surface seen along -z.
+
+    The grid spans, in x and y, the vertices within `crop_mm` of `centre`; each node is
+    the first hit of a ray along -z on the triangles whose corners are all that close.
+    Cells with a corner that misses, or an edge longer than `max_edge_cells` grid cells
+    (a depth jump), get no triangle. This gives a mesh of the same surface with an
+    unrelated structure, as a depth scanner would.
+    """
+    from .spatial import MeshSurface
+
+    vertices, faces = _mesh(vertices, faces)
+    centre = np.asarray(centre, dtype=np.float64).reshape(3)
+    rows, cols = shape
+    near = np.linalg.norm(vertices - centre, axis=1) <= crop_mm
+    cropped = faces[near[faces].all(axis=1)]
+    if not len(cropped):
+        raise ValueError(f"no triangle lies within crop_mm={crop_mm} of the centre")
+    lo, hi = vertices[near, :2].min(axis=0), vertices[near, :2].max(axis=0)
+    x, y = np.meshgrid(np.linspace(lo[0], hi[0], cols), np.linspace(hi[1], lo[1], rows))
+    origins = np.stack([x.ravel(), y.ravel(), np.full(x.size, vertices[:, 2].max() + 100.0)], axis=1)
+    hits = MeshSurface(vertices, cropped).intersect_rays(origins, np.tile([0.0, 0.0, -1.0], (x.size, 1)))
+    index = np.arange(rows * cols).reshape(rows, cols)
+    a, b, c, d = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
+    grid = np.concatenate([np.stack([a, c, d], -1).reshape(-1, 3), np.stack([a, d, b], -1).reshape(-1, 3)])
+    grid = grid[hits.hit[grid].all(axis=1)]
+    spacing = max((hi[0] - lo[0]) / (cols - 1), (hi[1] - lo[1]) / (rows - 1))
+    edges = np.stack([np.linalg.norm(hits.points[grid[:, i]] - hits.points[grid[:, (i + 1) % 3]], axis=1)
+                      for i in range(3)], axis=1)
+    grid = grid[(edges < max_edge_cells * spacing).all(axis=1)]
+    used = np.unique(grid)
+    renumber = np.full(rows * cols, -1)
+    renumber[used] = np.arange(len(used))
+    return HeightFieldMesh(hits.points[used], renumber[grid], cropped[hits.triangles[used]],
+                           hits.barycentric[used])
