@@ -95,16 +95,21 @@ def main(argv=None) -> int:
     ensure_scans(shared, scans, subjects)
 
     thesis = TransferOptions.thesis()
+    default = TransferOptions()
     variants = {
         "thesis": thesis,
+        "landmark-model": TransferOptions.landmark_model(),
+        "landmark-model-normalise": replace(TransferOptions.landmark_model(), alignment="normalise"),
+        "dense-control-points": replace(default, animation="control-points"),
+        "dense-control-points-wendland": replace(default, animation="control-points", warp="wendland"),
+        "default-no-mouth-scale": replace(default, scale_lower_face=False),
+        "default-hard-seam": replace(default, transition_mm=0.0),
         # each of the defaults' departures from the method, added on its own
         "thesis+similarity": replace(thesis, normalisation="similarity"),
         "thesis+surface-snap": replace(thesis, snap="surface"),
         "thesis+merge-landmarks": replace(thesis, merge_landmarks_mm=TransferOptions().merge_landmarks_mm),
         "thesis+anchors": replace(thesis, anchors=True),
-        "default-hard-seam": replace(TransferOptions(), transition_mm=0.0),
-        "default-no-anchors": replace(TransferOptions(), anchors=False),
-        "default": TransferOptions(),
+        "default": default,
     }
     for name in args.variants:
         if name not in variants and name != "noop":

@@ -119,12 +119,28 @@ def test_magnitude_outside_unit_interval_warns(smile):
         result.vertices
 
 
-def test_several_aus_add(smile):
+def test_several_aus_add_in_the_control_point_animation(smile):
     _, (gs, ge, gt) = smile
-    a = tpscore.transfer(gs, ge, gt, "12").animation.displacement(1.0)
-    b = tpscore.transfer(gs, ge, gt, "15").animation.displacement(1.0)
-    ab = tpscore.transfer(gs, ge, gt, "12,15").animation.displacement(1.0)
+    options = TransferOptions.landmark_model()
+    a = tpscore.transfer(gs, ge, gt, "12", options=options).animation.displacement(1.0)
+    b = tpscore.transfer(gs, ge, gt, "15", options=options).animation.displacement(1.0)
+    ab = tpscore.transfer(gs, ge, gt, "12,15", options=options).animation.displacement(1.0)
     assert np.allclose(ab, a + b, equal_nan=True, atol=1e-9)
+
+
+def test_aus_sharing_a_region_do_not_count_the_field_twice(smile):
+    # one expressive scan holds the motion of both AUs: carried as a field, their
+    # shares must add up to at most the scan's motion, never twice it
+    _, (gs, ge, gt) = smile
+    one = tpscore.transfer(gs, ge, gt, "12").animation.displacement(1.0)
+    two = tpscore.transfer(gs, ge, gt, "12,15").animation.displacement(1.0)
+    mask = np.isfinite(one).all(axis=2)
+    one_len = np.linalg.norm(one[mask], axis=1)
+    two_len = np.linalg.norm(two[mask], axis=1)
+    # the two transfers share the registration, so the sum of shares is exactly the
+    # field where the zones cover the point, and less where they do not
+    assert (two_len <= one_len + 1e-9).all()
+    assert two_len.max() > 0.5 * one_len.max()
 
 
 def test_missing_landmarks_are_coped_with_then_reported(smile):
