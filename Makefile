@@ -26,8 +26,11 @@ test: install
 demo: install
 	$(VENV)/bin/tpscore demo --out demo-output
 
+# Speed benchmarks (pytest-benchmark; ratios in bench-output/ratios.md), then the
+# fidelity benchmark (bench-output/fidelity.md); both skip what needs ../shared if absent.
 bench: install
 	$(PY) -m pytest benchmarks -q -p no:cacheprovider -o python_files="bench_*.py" --benchmark-columns=min,median,mean,rounds --benchmark-sort=name
+	$(PY) benchmarks/fidelity.py $(FIDELITY_ARGS)
 
 clean:
 	rm -rf build $(VENV) demo-output .pytest_cache .benchmarks

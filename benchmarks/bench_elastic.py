@@ -24,21 +24,12 @@ import numpy as np
 import pytest
 import scipy.sparse.linalg as spla
 
+from shared_data import shared_dir
 from tpscore.elastic import ElasticFace
 from tpscore.spatial import MeshSurface
 
 
-def _shared_dir() -> Path | None:
-    env = os.environ.get("TPSCORE_SHARED")
-    candidates = [Path(env)] if env else []
-    candidates.append(Path(__file__).resolve().parents[2] / "shared")
-    for path in candidates:
-        if (path / "data" / "ict-facekit" / "face_model.npz").is_file():
-            return path
-    return None
-
-
-SHARED = _shared_dir()
+SHARED = shared_dir()
 if SHARED is None:
     pytest.skip("needs ../shared (the ICT face model); set TPSCORE_SHARED", allow_module_level=True)
 

@@ -249,30 +249,19 @@ std::int32_t MeshSurface::build(std::int32_t begin, std::int32_t end,
     const auto id = static_cast<std::int32_t>(nodes_.size());
     nodes_.emplace_back();
     Node node;
-    double clo[3], chi[3];
-    for (int a = 0; a < 3; ++a) {
-        node.lo[a] = clo[a] = kInf;
-        node.hi[a] = chi[a] = -kInf;
-    }
-    for (std::int32_t i = begin; i < end; ++i) {
-        const std::int64_t f = triangle_index_[i];
-        for (int a = 0; a < 3; ++a) {
-            for (int j = 0; j < 3; ++j) {
-                node.lo[a] = std::min(node.lo[a], corners_[9 * f + 3 * j + a]);
-                node.hi[a] = std::max(node.hi[a], corners_[9 * f + 3 * j + a]);
-            }
-            clo[a] = std::min(clo[a], centroids[3 * f + a]);
-            chi[a] = std::max(chi[a], centroids[3 * f + a]);
-        }
-    }
-    for (int a = 0; a < 3; ++a) {
-        node.lo[a] -= pad_;
-        node.hi[a] += pad_;
-    }
     node.begin = begin;
     node.end = end;
     node.left = node.right = -1;
     if (end - begin > leaf_size_) {
+        // Split at the median centroid along the widest axis of the centroids' extent.
+        double clo[3] = {kInf, kInf, kInf}, chi[3] = {-kInf, -kInf, -kInf};
+        for (std::int32_t i = begin; i < end; ++i) {
+            const double* c = &centroids[3 * triangle_index_[i]];
+            for (int a = 0; a < 3; ++a) {
+                clo[a] = std::min(clo[a], c[a]);
+                chi[a] = std::max(chi[a], c[a]);
+            }
+        }
         int axis = 0;
         for (int a = 1; a < 3; ++a)
             if (chi[a] - clo[a] > chi[axis] - clo[axis]) axis = a;
@@ -284,6 +273,31 @@ std::int32_t MeshSurface::build(std::int32_t begin, std::int32_t end,
                          });
         node.left = build(begin, mid, centroids);
         node.right = build(mid, end, centroids);
+        // An inner box is the union of its children's (already padded) boxes: one pass
+        // over the corners per leaf instead of one per level.
+        const Node& l = nodes_[static_cast<std::size_t>(node.left)];
+        const Node& r = nodes_[static_cast<std::size_t>(node.right)];
+        for (int a = 0; a < 3; ++a) {
+            node.lo[a] = std::min(l.lo[a], r.lo[a]);
+            node.hi[a] = std::max(l.hi[a], r.hi[a]);
+        }
+    } else {
+        for (int a = 0; a < 3; ++a) {
+            node.lo[a] = kInf;
+            node.hi[a] = -kInf;
+        }
+        for (std::int32_t i = begin; i < end; ++i) {
+            const double* corner = &corners_[9 * triangle_index_[i]];
+            for (int j = 0; j < 3; ++j)
+                for (int a = 0; a < 3; ++a) {
+                    node.lo[a] = std::min(node.lo[a], corner[3 * j + a]);
+                    node.hi[a] = std::max(node.hi[a], corner[3 * j + a]);
+                }
+        }
+        for (int a = 0; a < 3; ++a) {
+            node.lo[a] -= pad_;
+            node.hi[a] += pad_;
+        }
     }
     nodes_[static_cast<std::size_t>(id)] = node;
     return id;

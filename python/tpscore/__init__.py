@@ -6,7 +6,7 @@ kernels in ``tpscore._core`` are private. Procedural faces are in
 """
 from __future__ import annotations
 
-from . import datasets, render
+from . import datasets, landmarks, render
 from ._core import num_threads, set_num_threads
 from .action_units import ActionUnit, ActionUnitLibrary, ControlPoint, default_library
 from .average_face import AverageFace, build_average_face, load_average_face
@@ -21,6 +21,9 @@ from .expression_transfer import (
     normalise_face,
     transfer,
 )
+from .adaptation import AdaptationWarning, AdaptLevel, AdaptResult, Correspondences, adapt
+from .calibration import AxesCalibration, axes_calibration, calibrate
+from .correspondence import FeatureMesh, curvature_features
 from .csrbf import CSRBF, ConvergenceError, wendland
 from .elastic import ElasticFace, ExpressionSet
 from .io import (
@@ -108,6 +111,17 @@ __all__ = [
     "CSRBF",
     "ConvergenceError",
     "wendland",
+    # template adaptation
+    "adapt",
+    "AdaptResult",
+    "AdaptLevel",
+    "AdaptationWarning",
+    "Correspondences",
+    "AxesCalibration",
+    "axes_calibration",
+    "calibrate",
+    "FeatureMesh",
+    "curvature_features",
     # mesh operators
     "MeanCurvature",
     "boundary_vertices",

@@ -22,7 +22,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from .landmarks import landmark_index
+from .landmarks import anchor_point, validate_anchor
 
 __all__ = [
     "ControlPoint",
@@ -54,26 +54,13 @@ class ControlPoint:
             raise ValueError(f"control point {self.name!r}: kind must be one of {_KINDS}, got {self.kind!r}")
         if self.side not in _SIDES:
             raise ValueError(f"control point {self.name!r}: side must be one of {_SIDES}, got {self.side!r}")
-        if not self.at:
-            raise ValueError(f"control point {self.name!r}: 'at' names no landmark")
-        weights = {}
-        for name, w in self.at.items():
-            landmark_index(name)  # raises for an unknown name
-            w = float(w)
-            if not np.isfinite(w) or w <= 0:
-                raise ValueError(f"control point {self.name!r}: weight of {name!r} must be > 0")
-            weights[name] = w
-        offset = tuple(float(v) for v in self.offset_mm)
-        if len(offset) != 2 or not np.isfinite(offset).all():
-            raise ValueError(f"control point {self.name!r}: offset_mm must be two finite numbers")
-        object.__setattr__(self, "at", weights)
+        at, offset = validate_anchor(f"control point {self.name!r}", self.at, self.offset_mm)
+        object.__setattr__(self, "at", at)
         object.__setattr__(self, "offset_mm", offset)
 
     def position_xy(self, landmarks: np.ndarray) -> np.ndarray:
         """(x, y) of the point on a face with the given (22, 3) landmarks (reference frame)."""
-        total = sum(self.at.values())
-        xy = sum(w * landmarks[landmark_index(n), :2] for n, w in self.at.items()) / total
-        return xy + np.asarray(self.offset_mm)
+        return anchor_point(landmarks, self.at, f"control point {self.name!r}")[:2] + self.offset_mm
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ any database of faces.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib import resources
 from typing import Sequence
@@ -42,14 +42,19 @@ class AverageFace:
 
     grid: FaceGrid
     n_faces: int
+    _normalised: object = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def landmarks(self) -> np.ndarray:
         return self.grid.landmarks
 
     def as_normalised_face(self):
-        from .expression_transfer import NormalisedFace
-        return NormalisedFace(self.grid, FrameTransform.identity())
+        """The AFM as a face already in the reference frame (built once: it caches the
+        surface queries every transfer makes on it)."""
+        if self._normalised is None:
+            from .expression_transfer import NormalisedFace
+            self._normalised = NormalisedFace(self.grid, FrameTransform.identity())
+        return self._normalised
 
     def save(self, path) -> None:
         """Write the AFM as a compressed .npz."""

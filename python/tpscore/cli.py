@@ -5,6 +5,7 @@
     tpscore demo [--out DIR]
     tpscore build-afm [--out average_face.npz]
     tpscore elastic --face-model face_model.npz --out DIR   (fit and clone expressions)
+    tpscore adapt TEMPLATE SCAN --template-landmarks T.lm3 --scan-landmarks S.lm3 --out fitted.obj
 
 Errors are reported as one line on stderr (exit status 2), not as a traceback.
 """
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .adaptation_cli import add_adapt_parser, adapt_command
 from .elastic_cli import add_elastic_parser, elastic_command
 
 __all__ = ["main"]
@@ -133,6 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
     d.add_argument("--quiet", action="store_true")
     add_elastic_parser(sub)
+    add_adapt_parser(sub)
     b = sub.add_parser("build-afm", help="rebuild the average face model from the procedural faces")
     b.add_argument("--out", default="average_face.npz")
     b.add_argument("--grid", default="150x150")
@@ -144,7 +147,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     handlers = {"transfer": run_transfer, "demo": run_demo, "build-afm": run_build_afm,
-                "elastic": elastic_command}
+                "elastic": elastic_command, "adapt": adapt_command}
     with warnings.catch_warnings():
         warnings.simplefilter("default")
         warnings.showwarning = lambda message, *_args, **_kw: print(

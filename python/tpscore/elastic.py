@@ -40,7 +40,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from ._validation import as_faces, as_points, as_positive, check_finite
-from .landmarks import N_LANDMARKS, landmark_index
+from .landmarks import N_LANDMARKS, anchor_point, landmark_index, validate_anchor
 from .mesh import cotan_laplacian, voronoi_areas
 from .sparse import SparseCholesky
 from .spatial import MeshSurface
@@ -162,25 +162,13 @@ class ElasticControlPoint:
             raise ValueError(f"control point {self.name!r}: region must be one of {_REGIONS}, got {self.region!r}")
         if self.side not in _SIDES:
             raise ValueError(f"control point {self.name!r}: side must be one of {_SIDES}, got {self.side!r}")
-        if not self.at:
-            raise ValueError(f"control point {self.name!r}: 'at' names no landmark")
-        weights = {}
-        for landmark, weight in self.at.items():
-            landmark_index(landmark)  # raises for an unknown name
-            weight = float(weight)
-            if not np.isfinite(weight) or weight <= 0:
-                raise ValueError(f"control point {self.name!r}: the weight of {landmark!r} must be > 0")
-            weights[landmark] = weight
-        offset = tuple(float(v) for v in self.offset_mm)
-        if len(offset) != 2 or not np.isfinite(offset).all():
-            raise ValueError(f"control point {self.name!r}: offset_mm must be two finite numbers")
-        object.__setattr__(self, "at", weights)
+        at, offset = validate_anchor(f"control point {self.name!r}", self.at, self.offset_mm)
+        object.__setattr__(self, "at", at)
         object.__setattr__(self, "offset_mm", offset)
 
     def anchor(self, landmarks: np.ndarray) -> np.ndarray:
         """The weighted mean of the named landmarks (3,), world coordinates."""
-        total = sum(self.at.values())
-        return sum(w * _landmark(landmarks, n, f"control point {self.name!r}") for n, w in self.at.items()) / total
+        return anchor_point(landmarks, self.at, f"control point {self.name!r}")
 
 
 def load_control_points(path=None) -> tuple[ElasticControlPoint, ...]:

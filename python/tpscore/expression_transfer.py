@@ -469,6 +469,25 @@ class Animation:
     def sweep(self, magnitudes: Sequence[float]) -> list[np.ndarray]:
         return [self.frame(m) for m in magnitudes]
 
+    @classmethod
+    def combine(cls, animations: Sequence["Animation"]) -> "Animation":
+        """One animation from several on the same target (e.g. each AU modelled from its
+        own expressive scan); their fields add, each keeping its own weight."""
+        animations = list(animations)
+        if not animations:
+            raise ValueError("combine needs at least one animation")
+        first = animations[0]
+        for other in animations[1:]:
+            if other.target.grid.points.shape != first.target.grid.points.shape or not np.array_equal(
+                    other.target.grid.points, first.target.grid.points, equal_nan=True):
+                raise ValueError("animations can only be combined on the same target grid")
+        labels = [label for a in animations for label in a.labels]
+        if len(set(labels)) != len(labels):
+            raise ValueError(f"the animations repeat AU labels: {labels}")
+        return cls(first.target, labels, np.concatenate([a.fields for a in animations]),
+                   [c for a in animations for c in a.control_points],
+                   [c for a in animations for c in a.moved_control_points])
+
 
 def _lower_face_scale(model: ExpressionModel, target: NormalisedFace) -> float:
     """s_t / s_s, the ratio of the mouth widths (1 with a warning when one is missing)."""
@@ -480,40 +499,20 @@ def _lower_face_scale(model: ExpressionModel, target: NormalisedFace) -> float:
     return 1.0
 
 
-def _activation_zones(model: ExpressionModel, points: np.ndarray, controls: list[np.ndarray],
-                      support_mm: float) -> list[np.ndarray]:
-    """Share of each AU in the source field at each point (..., 3).
-
-    One expressive scan holds the motion of all the AUs asked for; where two AUs of one
-    region overlap, the field must not be added twice. Each AU's zone is a Wendland
-    bump around its control points; AUs alone in their region get the whole region."""
-    regions = [m.activation.action_unit.region for m in model.motions]
-    zones = []
-    for k, motion in enumerate(model.motions):
-        if regions.count(regions[k]) == 1:
-            zones.append(np.ones(points.shape[:-1]))
-            continue
-        distance = np.full(points.shape[:-1], np.inf)
-        for c in controls[k]:
-            distance = np.minimum(distance, np.linalg.norm(points - c, axis=-1))
-        r = np.clip(distance / support_mm, 0.0, 1.0)
-        zones.append((1 - r) ** 4 * (4 * r + 1))
-    for region in set(regions):
-        members = [k for k in range(len(zones)) if regions[k] == region]
-        if len(members) > 1:
-            total = np.maximum(sum(zones[k] for k in members), 1.0)
-            for k in members:
-                zones[k] = zones[k] / total
-    return zones
-
-
 def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
-    """Animation: carry the modelled motion onto the target and precompute each AU's field.
+    """Animation: carry the modelled motion onto the target and precompute the fields.
 
     With ``options.animation == "field"`` each target vertex reads the source's dense
     displacement at its corresponding point (landmark TPS target -> source), weighted by
-    the AU's region (and side); otherwise each region is warped through the AU's moved
-    control points (TPS with anchors, or Wendland)."""
+    the region (and side) of the AUs; otherwise each region is warped through the AUs'
+    moved control points (TPS with anchors, or Wendland).
+
+    AUs of one region modelled from the same expressive scan share one warp (and one
+    field, labelled e.g. ``AU1+AU4``): that scan shows their combined motion, so a
+    control point two AUs share (the inner brow of AU1 and AU4), or the field under
+    both, carries that motion once, not once per AU. AUs modelled from different scans
+    are combined with :meth:`Animation.combine`, where their fields add.
+    """
     options = model.options
     to_target = landmark_map(model.source.landmarks, target.landmarks,
                              smoothing=options.landmark_smoothing,
@@ -522,34 +521,40 @@ def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
     grid = target.grid
     flat = grid.points.reshape(-1, 3)
     valid = grid.mask.ravel()
-    controls = [target.snap(to_target(m.neutral), options.snap) for m in model.motions]
     carried = None
     if options.animation == "field":
         to_source = landmark_map(target.landmarks, model.source.landmarks,
                                  smoothing=options.landmark_smoothing,
                                  merge_mm=options.merge_landmarks_mm, what="target -> source")
-        carried = np.zeros_like(flat)
-        carried[valid] = _fade_small(model.dense(to_source(flat[valid])), options.still_motion_mm)
-        zones = _activation_zones(model, grid.points, controls, 2.0 * options.anchor_distance_mm)
-    fields, moved = [], []
-    for k, motion in enumerate(model.motions):
-        act = motion.activation
-        region = act.action_unit.region
+        carried = _fade_small(model.dense(to_source(flat[valid])), options.still_motion_mm)
+    by_region: dict[str, list[ControlPointMotion]] = {}
+    for motion in model.motions:
+        by_region.setdefault(motion.activation.action_unit.region, []).append(motion)
+    labels, fields, controls, moved = [], [], [], []
+    for region, motions in by_region.items():
         region_w = region_weight(region, grid.points, target.landmarks, options.transition_mm)
+        neutral = np.vstack([m.neutral for m in motions])
+        control = target.snap(to_target(neutral), options.snap)
         scale = lower_scale if region == "lower" else 1.0
-        displacement = motion.motion * scale
-        control = controls[k]
+        displacement = np.vstack([m.motion for m in motions]) * scale
         field_flat = np.zeros_like(flat)
         if carried is not None:
-            weight = (region_w * zones[k] * act.weight
-                      * side_weight(act.side, grid.points, target.landmarks, options.side_transition_mm))
-            field_flat[valid] = carried[valid] * (scale * weight.ravel()[valid, None])
+            # the scan shows the AUs' combined motion: each point takes it once, at the
+            # largest weight of the AUs that cover its side
+            share = np.max([m.activation.weight * side_weight(m.activation.side, grid.points,
+                                                              target.landmarks,
+                                                              options.side_transition_mm)
+                            for m in motions], axis=0)
+            weight = (region_w * share).ravel()[valid]
+            field_flat[valid] = carried * (scale * weight[:, None])
         else:
-            field_flat[valid] = _control_point_warp(target, control, displacement, region_w,
-                                                    options)(flat[valid]) * region_w.ravel()[valid, None]
+            warp = _control_point_warp(target, control, displacement, region_w, options)
+            field_flat[valid] = warp(flat[valid]) * region_w.ravel()[valid, None]
+        labels.append("+".join(m.activation.label for m in motions))
         fields.append(field_flat.reshape(grid.points.shape))
+        controls.append(control)
         moved.append(control + displacement)
-    return Animation(target, model.labels, np.stack(fields), controls, moved)
+    return Animation(target, labels, np.stack(fields), controls, moved)
 
 
 def _control_point_warp(target: NormalisedFace, control: np.ndarray, displacement: np.ndarray,

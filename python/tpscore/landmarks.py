@@ -15,6 +15,8 @@ __all__ = [
     "empty_landmarks",
     "landmark_map",
     "MIN_LANDMARKS",
+    "validate_anchor",
+    "anchor_point",
 ]
 
 #: A 3D TPS with an affine part needs five landmark pairs that are not coplanar.
@@ -70,6 +72,39 @@ def _mirror(name: str) -> str:
 
 #: For each landmark index, the index of its mirror image (itself on the midline).
 MIRROR_LANDMARK: tuple[int, ...] = tuple(landmark_index(_mirror(n)) for n in LANDMARK_NAMES)
+
+
+def validate_anchor(owner: str, at, offset_mm) -> tuple[dict[str, float], tuple[float, float]]:
+    """Check a place defined relative to the landmarks: weights over landmark names and
+    an (x, y) offset in mm. Returns them as a dict of floats and a 2-tuple; raises
+    ValueError naming `owner` for an unknown name, a weight <= 0 or a bad offset."""
+    if not at:
+        raise ValueError(f"{owner}: 'at' names no landmark")
+    weights = {}
+    for name, weight in dict(at).items():
+        landmark_index(name)  # raises for an unknown name
+        weight = float(weight)
+        if not np.isfinite(weight) or weight <= 0:
+            raise ValueError(f"{owner}: the weight of {name!r} must be > 0")
+        weights[name] = weight
+    offset = tuple(float(v) for v in offset_mm)
+    if len(offset) != 2 or not np.isfinite(offset).all():
+        raise ValueError(f"{owner}: offset_mm must be two finite numbers")
+    return weights, offset
+
+
+def anchor_point(landmarks, at, owner: str = "anchor") -> np.ndarray:
+    """The weighted mean (3,) of the landmarks named in `at`; ValueError if one is missing."""
+    lm = np.asarray(landmarks, dtype=np.float64)
+    total = 0.0
+    point = np.zeros(3)
+    for name, weight in at.items():
+        p = lm[landmark_index(name)]
+        if not np.isfinite(p).all():
+            raise ValueError(f"landmarks: {name!r} is missing (NaN) but is needed for {owner}")
+        point += weight * p
+        total += weight
+    return point / total
 
 
 def empty_landmarks() -> np.ndarray:

@@ -1,0 +1,19 @@
+"""Where the benchmarks find the optional shared data (the ICT face model, make_scans.py
+and score_transfer.py): $TPSCORE_SHARED, else ../shared beside the repository."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+REPOSITORY = Path(__file__).resolve().parents[1]
+
+
+def shared_dir() -> Path | None:
+    """The shared folder, or None when it is absent (the benchmarks then skip)."""
+    env = os.environ.get("TPSCORE_SHARED")
+    candidates = [Path(env)] if env else []
+    candidates.append(REPOSITORY.parent / "shared")
+    for path in candidates:
+        if (path / "data" / "ict-facekit" / "face_model.npz").is_file():
+            return path
+    return None

@@ -1,0 +1,616 @@
+"""Template adaptation: deform a template mesh onto a scan (method 2 of the design).
+
+Given a template (any topology) with feature points and a scan (a mesh or a
+Bosphorus grid, noisy, with holes) with the corresponding feature points,
+:func:`adapt` returns the template's vertices moved onto the scan -- same topology,
+the scan's shape -- and the error figures of each level:
+
+1. calibration: the scan is brought into the template's frame (similarity over the
+   feature pairs by default, or the method's axes calibration, or a given transform);
+2. level 0: a global biharmonic RBF (phi(r) = r, affine part, K - rho I) maps the
+   template's feature points onto the scan's;
+3. levels k >= 1: f_k = f_{k-1} + o_k, the offset o_k fitted to the residuals at the
+   level's correspondences -- all feature-mesh pairs so far, plus curvature (and
+   spread) vertices paired by rays from the current fit; a global RBF while the
+   pairs are few, a CSRBF with support sigma_k = sigma_{k-1} / 2 after;
+4. after each level the distance error Ed, the marker error Em and E = alpha Ed +
+   beta Em; the levels stop when E stops decreasing and the best level is returned.
+
+Defective data: noisy scans (rho and the CSRBF smoothing), missing feature points
+(the curvature search and the feature mesh fill in), holes (rays that miss make no
+pair; the coarse levels carry the fit across), and a wrong feature point (found by
+leave-one-out prediction and left out) all run; a :class:`AdaptationWarning` says
+where the result cannot be trusted.
+"""
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from ._validation import as_faces, as_points
+from .calibration import calibrate
+from .correspondence import FeatureMesh, ScanTarget, curvature_features, spread_vertices
+from .csrbf import CSRBF, ConvergenceError
+from .fit_error import combined_error, distance_error, marker_error, surface_noise
+from .landmarks import N_LANDMARKS, landmark_index
+from .mesh import vertex_normals
+from .normalise import FrameTransform, similarity_transform
+from .rbf import RBF
+from .spatial import KDTree, MeshSurface
+
+__all__ = [
+    "AdaptationWarning",
+    "AdaptLevel",
+    "AdaptResult",
+    "Correspondences",
+    "adapt",
+    "find_outlier_landmarks",
+    "DEFAULT_FEATURE_BOX",
+]
+
+#: Landmarks whose bounding box (plus a margin) limits the curvature search: eyes to mouth.
+DEFAULT_FEATURE_BOX = (
+    "Outer left eye corner", "Outer right eye corner", "Inner left eye corner", "Inner right eye corner",
+    "Nose tip", "Left mouth corner", "Right mouth corner", "Lower lip outer middle",
+)
+
+
+class AdaptationWarning(UserWarning):
+    """Part of an adaptation cannot be trusted (holes, wrong or missing feature points, noise)."""
+
+
+@dataclass(frozen=True)
+class AdaptLevel:
+    """The figures of one level of the multilevel fit (a row of the method's Tables 1-2)."""
+
+    level: int
+    method: str
+    """"rbf" (global biharmonic) or "csrbf"."""
+    support: float
+    """CSRBF support sigma_k (mm, template frame); NaN for a global level."""
+    pairs: int
+    """Correspondences the level's offset was fitted to."""
+    new_pairs: int
+    """Of those, the pairs found at this level."""
+    distance_error: float
+    """Ed, mm^2 (scan frame)."""
+    marker_error: float
+    """Em, mm^2 (scan frame); NaN without held-out markers."""
+    error: float
+    """E = alpha Ed + beta Em."""
+    coverage: float
+    """Fraction of the template vertices in the feature points' bounding box that have a
+    compatible scan vertex."""
+    seconds: float
+    """Time spent on the level (pairing, fit, evaluation and error)."""
+
+
+@dataclass(frozen=True)
+class Correspondences:
+    """The template -> scan pairs the fit used, in the template frame."""
+
+    template_points: np.ndarray
+    """(n, 3) points on the undeformed template, mm."""
+    scan_points: np.ndarray
+    """(n, 3) the scan points they were paired with (calibrated frame), mm."""
+    source: np.ndarray
+    """(n,) str: "landmark", "feature-mesh", "curvature" or "spread"."""
+
+
+@dataclass(frozen=True)
+class AdaptResult:
+    """The template fitted to a scan.
+
+    Attributes
+    ----------
+    vertices : (n, 3) ndarray
+        The deformed template, vertex for vertex, in the SCAN's frame (mm).
+    template_frame_vertices : (n, 3) ndarray
+        The same, in the template's frame (before undoing the calibration).
+    transform : FrameTransform
+        The calibration: scan frame -> template frame.
+    levels : list of AdaptLevel
+        Every level computed, including the one that made E rise (if any).
+    best_level : int
+        The level whose fit is returned (E at its minimum).
+    correspondences : Correspondences
+        The pairs of the returned level.
+    outlier_landmarks : tuple of int
+        Feature points left out of the fit as wrong.
+    warnings : tuple of str
+        The :class:`AdaptationWarning` messages given.
+    """
+
+    vertices: np.ndarray
+    template_frame_vertices: np.ndarray
+    transform: FrameTransform
+    levels: list
+    best_level: int
+    correspondences: Correspondences
+    outlier_landmarks: tuple = ()
+    warnings: tuple = ()
+    _fields: tuple = field(default=(), repr=False)
+
+    def deform(self, points) -> np.ndarray:
+        """Apply the fitted map (up to the best level) to template-frame points.
+
+        Parameters
+        ----------
+        points : (m, 3) array_like
+            Points in the template's frame (mm).
+
+        Returns
+        -------
+        (m, 3) ndarray in the scan's frame (mm).
+        """
+        points = as_points(points, "points")
+        return self.transform.apply_inverse(_evaluate(self._fields, points))
+
+    def table(self) -> str:
+        """The per-level figures as a Markdown table."""
+        rows = ["| level | method | sigma (mm) | pairs | Ed (mm^2) | Em (mm^2) | E | coverage | time (s) |",
+                "|---|---|---|---|---|---|---|---|---|"]
+        for lv in self.levels:
+            mark = " *" if lv.level == self.best_level else ""
+            rows.append(f"| {lv.level}{mark} | {lv.method} | {lv.support:.1f} | {lv.pairs} | "
+                        f"{lv.distance_error:.3f} | {lv.marker_error:.3f} | {lv.error:.3f} | "
+                        f"{lv.coverage:.2f} | {lv.seconds:.3f} |")
+        return "\n".join(rows)
+
+
+def _evaluate(fields, points: np.ndarray) -> np.ndarray:
+    """f(points) = f_0(points) + sum of the offsets."""
+    result = fields[0](points)
+    for offset in fields[1:]:
+        result = result + offset(points)
+    return result
+
+
+def _as_mesh(obj, name: str):
+    """(vertices, faces) from a FaceGrid, GridMesh, BntScan, MeshSurface or (vertices, faces)."""
+    from .io import BntScan
+    from .preprocess import FaceGrid, GridMesh
+
+    if isinstance(obj, FaceGrid):
+        mesh = obj.mesh()
+        return mesh.vertices, mesh.faces
+    if isinstance(obj, GridMesh):
+        return obj.vertices, obj.faces
+    if isinstance(obj, BntScan):
+        mesh = FaceGrid.from_points(obj.points).mesh()
+        return mesh.vertices, mesh.faces
+    if isinstance(obj, MeshSurface):
+        return obj.vertices, obj.faces
+    try:
+        vertices, faces = obj
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"{name} must be a (vertices, faces) pair, a FaceGrid, a GridMesh or a BntScan, "
+            f"got {type(obj).__name__}") from None
+    vertices = as_points(vertices, f"{name} vertices", allow_empty=False)
+    return vertices, as_faces(faces, len(vertices), f"{name} faces")
+
+
+def _as_feature_points(landmarks, vertices: np.ndarray, name: str) -> np.ndarray:
+    """(k, 3) points with NaN rows; integer input (k,) are vertex indices (-1 missing)."""
+    array = np.asarray(landmarks)
+    if array.ndim == 1 and np.issubdtype(array.dtype, np.integer):
+        index = array.astype(np.int64)
+        if index.size and index.max() >= len(vertices):
+            raise ValueError(f"{name}: vertex index {index.max()} is out of range ({len(vertices)} vertices)")
+        points = np.full((len(index), 3), np.nan)
+        points[index >= 0] = vertices[index[index >= 0]]
+        return points
+    return as_points(landmarks, name, finite=False)
+
+
+def find_outlier_landmarks(template_points, scan_points, *, threshold: float = 6.0,
+                           smoothing: float = 1.0, max_outliers: int = 3) -> list[int]:
+    """Feature points whose scan position disagrees with all the others.
+
+    Each present pair is predicted from the others by a biharmonic RBF (leave one
+    out); the pair with the largest miss is removed while its miss exceeds both
+    `threshold` and three times the median miss, up to `max_outliers` times.
+
+    Parameters
+    ----------
+    template_points, scan_points : (k, 3) array_like
+        Corresponding points (mm, scan already calibrated); NaN rows missing.
+    threshold : float
+        Smallest miss (mm) that counts as wrong.
+
+    Returns
+    -------
+    list of int, the rows judged wrong (worst first).
+    """
+    template = as_points(template_points, "template_points", finite=False)
+    scan = as_points(scan_points, "scan_points", finite=False)
+    active = np.isfinite(template).all(axis=1) & np.isfinite(scan).all(axis=1)
+    outliers: list[int] = []
+    while len(outliers) < max_outliers and active.sum() > 7:
+        rows = np.flatnonzero(active)
+        misses = np.empty(len(rows))
+        for k, row in enumerate(rows):
+            others = rows[rows != row]
+            try:
+                field_ = RBF(template[others], scan[others] - template[others], "biharmonic",
+                             smoothing=smoothing)
+            except ValueError:
+                misses[k] = 0.0
+                continue
+            predicted = template[row] + field_(template[row][None])[0]
+            misses[k] = np.linalg.norm(predicted - scan[row])
+        worst = int(np.argmax(misses))
+        if misses[worst] > threshold and misses[worst] > 3.0 * np.median(misses):
+            outliers.append(int(rows[worst]))
+            active[rows[worst]] = False
+        else:
+            break
+    return outliers
+
+
+def _dedupe(template_points, scan_points, sources, tolerance: float):
+    """Keep the first of pairs whose template points are closer than `tolerance`."""
+    if len(template_points) < 2:
+        return template_points, scan_points, sources
+    keys = np.floor(template_points / tolerance).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    first = np.sort(first)
+    return template_points[first], scan_points[first], sources[first]
+
+
+def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: int = 6,
+          calibration="similarity", rho: float = 10.0, dense_threshold: int = 500,
+          initial_support: float | None = None, csrbf_smoothing: float = 2.0, quadric: bool = False,
+          curvature_count: int = 300, feature_mesh_levels: int = 1, feature_box=DEFAULT_FEATURE_BOX, spread: bool = True,
+          held_out_landmarks=(), markers=None, alpha: float = 1.0, beta: float = 1.0,
+          distance_threshold: float | None = None, vertex_weights=None, rigid_parts=None,
+          scan_view=(0.0, 0.0, 1.0), outlier_threshold: float = 15.0, stop_at_minimum: bool = True,
+          noise_warning_mm: float = 0.6, progress: Callable[[AdaptLevel], None] | None = None) -> AdaptResult:
+    """Fit a template mesh to a scan with a global RBF and multilevel CSRBF.
+
+    Parameters
+    ----------
+    template : (vertices, faces), FaceGrid or GridMesh
+        The template mesh (mm), any topology; faces consistently oriented with
+        normals facing out of the face (toward +z in the template frame).
+    scan : (vertices, faces), FaceGrid, GridMesh or BntScan
+        The scan surface (mm), in its own frame; noise and holes allowed.
+    template_landmarks : (k, 3) array_like, or (k,) int vertex indices
+        Feature points on the template (NaN rows or -1 missing). With k = 22 they are
+        the Bosphorus landmarks, which the defaults (calibration, curvature box)
+        use by name.
+    scan_landmarks : (k, 3) array_like, optional
+        The corresponding scan points (NaN rows missing); defaults to the
+        FaceGrid's landmarks when `scan` is a FaceGrid.
+    levels : int
+        Largest number of levels (level 0 is the landmark RBF), >= 1.
+    calibration : {"similarity", "axes", "none"} or FrameTransform
+        How the scan is brought into the template frame; a FrameTransform (scan ->
+        template) is used as given, "none" skips calibration (scan and template
+        already share a frame).
+    rho : float
+        Error coefficient of the global RBF levels, mm (K - rho I), >= 0.
+    dense_threshold : int
+        Global RBF while a level has fewer pairs than this, CSRBF after.
+    initial_support : float, optional
+        sigma_1 (mm, template frame); sigma_k = sigma_{k-1} / 2. Default: a fifth of
+        the template's width.
+    csrbf_smoothing : float
+        Diagonal term of the CSRBF levels (>= 0), against scan noise.
+    quadric : bool
+        Fit the CSRBF local quadrics g_j in each centre's tangent frame. Off by
+        default: on the ICT benchmark the quadrics, fitted to residual fields that are
+        noisy at the scale of the support, raised the true error (see the README).
+    curvature_count : int
+        Curvature vertices paired at each level (0 switches the search off).
+    feature_mesh_levels : int
+        Levels at which the feature mesh is subdivided (its points carry the feature
+        points' annotation error, so ever finer subdivision only adds that noise).
+    feature_box : sequence of landmark names, or ((3,), (3,)) corners, or None
+        Limits the curvature search (template frame); None: the whole template.
+    spread : bool
+        Also pair evenly spread template vertices (spacing sigma_k / 4) at every
+        level, so the fit reaches beyond the feature points' hull.
+    held_out_landmarks : sequence of names or indices
+        Landmarks kept out of the fit and used as markers for Em.
+    markers : (template_points (m, 3), scan_points (m, 3)), optional
+        More marker pairs for Em (template frame, scan frame), never fitted.
+    alpha, beta : float
+        Weights of Ed and Em in E.
+    distance_threshold : float, optional
+        Ed's compatibility distance (mm); default a tenth of the template's width.
+    vertex_weights : (n,) array_like, optional
+        Per-vertex (region) weights of Ed, >= 0.
+    rigid_parts : sequence of index arrays, optional
+        Groups of template vertices (eyes, teeth) that move rigidly: each follows
+        the similarity fitted to the six feature points nearest to it.
+    scan_view : (3,) array_like or None
+        Direction from the scan toward its scanner, in the scan frame (+z for
+        Bosphorus); template points facing away cannot have been scanned and are
+        not paired. None disables the test.
+    outlier_threshold : float
+        Leave-one-out miss (mm) above which a feature point is judged wrong. On the
+        ICT development subjects correct landmarks miss by up to about 13 mm (chin,
+        nose tip: identity differences the others do not predict), so errors below
+        about 15 mm cannot be told from identity this way and are kept.
+    stop_at_minimum : bool
+        Stop at the first level where E rises (return the best level); False runs
+        every level and still returns the best.
+    noise_warning_mm : float
+        Warn when the estimated scan noise exceeds this (mm).
+    progress : callable, optional
+        Called with each finished :class:`AdaptLevel`.
+
+    Returns
+    -------
+    AdaptResult
+
+    Raises
+    ------
+    ValueError
+        Bad arguments, or fewer than 5 usable feature pairs.
+    """
+    template_vertices, template_faces = _as_mesh(template, "template")
+    scan_vertices, scan_faces = _as_mesh(scan, "scan")
+    if scan_landmarks is None:
+        from .preprocess import FaceGrid
+
+        if not isinstance(scan, FaceGrid):
+            raise ValueError("scan_landmarks is required unless scan is a FaceGrid with landmarks")
+        scan_landmarks = scan.landmarks
+    template_lm = _as_feature_points(template_landmarks, template_vertices, "template_landmarks")
+    scan_lm = as_points(scan_landmarks, "scan_landmarks", finite=False)
+    if scan_lm.shape != template_lm.shape:
+        raise ValueError(f"scan_landmarks must have shape {template_lm.shape} like template_landmarks, "
+                         f"got {scan_lm.shape}")
+    if int(levels) != levels or levels < 1:
+        raise ValueError(f"levels must be an integer >= 1, got {levels!r}")
+    for value, label in ((rho, "rho"), (csrbf_smoothing, "csrbf_smoothing"), (alpha, "alpha"),
+                         (beta, "beta")):
+        if not np.isfinite(value) or value < 0:
+            raise ValueError(f"{label} must be finite and >= 0, got {value!r}")
+    n_vertices = len(template_vertices)
+    if vertex_weights is not None:
+        vertex_weights = np.asarray(vertex_weights, dtype=np.float64)
+        if vertex_weights.shape != (n_vertices,) or not np.isfinite(vertex_weights).all() \
+                or (vertex_weights < 0).any():
+            raise ValueError(f"vertex_weights must be {n_vertices} finite non-negative numbers")
+
+    messages: list[str] = []
+
+    def warn(message: str) -> None:
+        messages.append(message)
+        warnings.warn(message, AdaptationWarning, stacklevel=3)
+
+    names = None
+    if len(template_lm) == N_LANDMARKS:
+        from .landmarks import LANDMARK_NAMES
+
+        names = LANDMARK_NAMES
+    label = (lambda i: names[i]) if names else (lambda i: f"feature point {i}")
+
+    # --- feature points: which take part in the fit, which are markers ----------------
+    held = set()
+    for item in held_out_landmarks:
+        held.add(landmark_index(item) if isinstance(item, str) else int(item))
+    present = np.isfinite(template_lm).all(axis=1) & np.isfinite(scan_lm).all(axis=1)
+    missing = [i for i in range(len(template_lm)) if not present[i]]
+    if missing:
+        warn(f"{len(missing)} feature point(s) missing ({', '.join(label(i) for i in missing)}); "
+             "the feature mesh and the curvature search fill in around them")
+    fit_mask = present.copy()
+    fit_mask[list(held)] = False
+
+    # --- calibration ------------------------------------------------------------------
+    if isinstance(calibration, str) and calibration == "axes" and names is None:
+        raise ValueError("calibration='axes' needs the 22 Bosphorus landmarks")
+    calib_lm = np.where(fit_mask[:, None], scan_lm, np.nan)
+    transform = calibrate(calib_lm, template_lm, calibration)
+    scale = transform.scale
+    scan_points = transform.apply(scan_vertices)
+    scan_lm_t = transform.apply(scan_lm)
+    outliers = find_outlier_landmarks(np.where(fit_mask[:, None], template_lm, np.nan), scan_lm_t,
+                                      threshold=outlier_threshold * scale)
+    if outliers:
+        warn(f"feature point(s) {', '.join(label(i) for i in outliers)} disagree with the others by more "
+             f"than {outlier_threshold:g} mm and were left out of the fit; check them")
+        fit_mask[outliers] = False
+        if calibration in ("similarity", "axes"):
+            transform = calibrate(np.where(fit_mask[:, None], scan_lm, np.nan), template_lm, calibration)
+            scale = transform.scale
+            scan_points = transform.apply(scan_vertices)
+            scan_lm_t = transform.apply(scan_lm)
+    if fit_mask.sum() < 5:
+        raise ValueError(f"adaptation needs at least 5 feature pairs present on both faces, got {int(fit_mask.sum())}")
+
+    target = ScanTarget(scan_points, scan_faces)
+    template_surface = MeshSurface(template_vertices, template_faces)
+    scan_tree = KDTree(scan_points)
+    view = None
+    if scan_view is not None:
+        view = transform.apply_vectors(np.asarray(scan_view, dtype=np.float64))
+        view = view / np.linalg.norm(view)
+    extent = template_vertices.max(axis=0) - template_vertices.min(axis=0)
+    width = float(extent[0])
+    threshold = distance_threshold if distance_threshold is not None else width / 10.0
+    sigma = float(initial_support) if initial_support is not None else width / 5.0
+    # Rays longer than this find another part of the face rather than the same one.
+    max_ray = max(0.05 * width, 4.0)
+
+    box = None
+    if feature_box is not None:
+        if names is not None and all(isinstance(n, str) for n in feature_box):
+            rows = template_lm[[landmark_index(n) for n in feature_box]]
+            rows = rows[np.isfinite(rows).all(axis=1)]
+            if len(rows):
+                margin = 0.05 * width
+                box = (rows.min(axis=0) - margin, rows.max(axis=0) + margin)
+        else:
+            box = tuple(np.asarray(c, dtype=np.float64).reshape(3) for c in feature_box)
+
+    # Landmarks lie on the scan only to within their annotation error: move each onto the
+    # surface (its normal error is pure noise) when the surface is close.
+    fit_rows = np.flatnonzero(fit_mask)
+    landmark_targets = scan_lm_t[fit_rows].copy()
+    closest = target.surface.closest_point(landmark_targets)
+    near = closest.distances < 2.0 * max_ray
+    landmark_targets[near] = closest.points[near]
+    landmark_sources = template_lm[fit_rows]
+
+    marker_template = []
+    marker_scan = []
+    for i in sorted(held):
+        if present[i]:
+            marker_template.append(template_lm[i])
+            marker_scan.append(scan_lm_t[i])
+    if markers is not None:
+        mt, ms = markers
+        mt = as_points(mt, "markers template points", finite=False)
+        ms = as_points(ms, "markers scan points", finite=False)
+        if mt.shape != ms.shape:
+            raise ValueError("markers: template and scan points must have the same shape")
+        marker_template.extend(mt)
+        marker_scan.extend(transform.apply(ms))
+    marker_template = np.asarray(marker_template, dtype=np.float64).reshape(-1, 3)
+    marker_scan = np.asarray(marker_scan, dtype=np.float64).reshape(-1, 3)
+
+    # Coverage is judged over the part of the template the feature points span: a
+    # template may reach well beyond what any scan of the face shows (ears, neck).
+    lm_rows = template_lm[fit_mask]
+    hull_margin = 0.05 * width
+    inside_features = np.all((template_vertices >= lm_rows.min(axis=0) - hull_margin)
+                             & (template_vertices <= lm_rows.max(axis=0) + hull_margin), axis=1)
+
+    def errors(fields, deformed):
+        normals = vertex_normals(deformed, template_faces)
+        ed = distance_error(deformed, normals, scan_tree, target.vertex_normals, threshold=threshold,
+                            weights=vertex_weights, scan_rim=target.rim_vertices)
+        em = marker_error(_evaluate(fields, marker_template), marker_scan) if len(marker_template) else np.nan
+        weights = np.ones(n_vertices) if vertex_weights is None else vertex_weights
+        active = inside_features & (weights > 0)
+        coverage = float(np.isfinite(ed.distances[active]).mean()) if active.any() else 0.0
+        ed_value, em_value = ed.value / scale**2, em / scale**2
+        return ed_value, em_value, combined_error(ed_value, em_value, alpha, beta), coverage, normals
+
+    # --- level 0: global RBF over the feature points ------------------------------------
+    level_start = time.perf_counter()
+    first = RBF(landmark_sources, landmark_targets, "biharmonic", smoothing=rho)
+    fields = [first]
+    deformed = first(template_vertices)
+    ed, em, e, coverage, normals = errors(fields, deformed)
+    report = AdaptLevel(0, "rbf", float("nan"), len(fit_rows), len(fit_rows), ed, em, e, coverage,
+                        time.perf_counter() - level_start)
+    reports = [report]
+    if progress:
+        progress(report)
+    sources = np.array(["landmark"] * len(fit_rows), dtype=object)
+    pairs_template, pairs_scan = landmark_sources.copy(), landmark_targets.copy()
+    best = (e, 0, list(fields), deformed, (pairs_template, pairs_scan, sources))
+
+    feature_mesh = None
+    if len(fit_rows) >= 3:
+        try:
+            feature_mesh = FeatureMesh.build(landmark_sources, landmark_targets,
+                                             view if view is not None else (0.0, 0.0, 1.0))
+        except ValueError:
+            feature_mesh = None
+    curvature_vertices = np.zeros(0, dtype=np.int64)
+    if curvature_count > 0:
+        curvature_vertices = curvature_features(template_vertices, template_faces, curvature_count,
+                                                box=box, spacing=0.01 * width)
+    fm_template = np.zeros((0, 3))
+    fm_scan = np.zeros((0, 3))
+
+    for level in range(1, int(levels)):
+        level_start = time.perf_counter()
+        new = 0
+        if feature_mesh is not None and level <= feature_mesh_levels:
+            feature_mesh, new_t, new_s = feature_mesh.subdivide(template_surface, target,
+                                                               max_distance=max_ray * 2)
+            fm_template = np.vstack([fm_template, new_t])
+            fm_scan = np.vstack([fm_scan, new_s])
+            new += len(new_t)
+        chosen = curvature_vertices
+        kinds = ["curvature"] * len(chosen)
+        use_spread = spread
+        if use_spread:
+            spacing = max(sigma / 4.0, 1e-3 * width)
+            extra = spread_vertices(template_vertices, spacing)
+            extra = np.setdiff1d(extra, chosen)
+            chosen = np.concatenate([chosen, extra])
+            kinds = kinds + ["spread"] * len(extra)
+        hit, hit_points = target.cast(deformed[chosen], normals[chosen], max_distance=max_ray,
+                                      view_direction=view)
+        ray_template = template_vertices[chosen[hit]]
+        ray_scan = hit_points[hit]
+        ray_kinds = np.array(kinds, dtype=object)[hit]
+        new += len(ray_template)
+
+        all_template = np.vstack([landmark_sources, fm_template, ray_template])
+        all_scan = np.vstack([landmark_targets, fm_scan, ray_scan])
+        all_sources = np.concatenate([np.array(["landmark"] * len(landmark_sources), dtype=object),
+                                      np.array(["feature-mesh"] * len(fm_template), dtype=object), ray_kinds])
+        all_template, all_scan, all_sources = _dedupe(all_template, all_scan, all_sources, 1e-3 * width)
+        residual = all_scan - _evaluate(fields, all_template)
+        if len(all_template) < dense_threshold:
+            method, support = "rbf", float("nan")
+            offset = RBF(all_template, residual, "biharmonic", smoothing=rho)
+        else:
+            method, support = "csrbf", sigma
+            try:
+                offset = CSRBF(all_template, residual, sigma, quadric=quadric, smoothing=csrbf_smoothing,
+                               tolerance=1e-8)
+            except ConvergenceError:
+                warn(f"level {level}: the CSRBF solve did not converge; the fit stops at level {level - 1}")
+                break
+        candidate = fields + [offset]
+        deformed_next = deformed + offset(template_vertices)
+        ed, em, e, coverage, normals_next = errors(candidate, deformed_next)
+        report = AdaptLevel(level, method, support, len(all_template), new, ed, em, e, coverage,
+                            time.perf_counter() - level_start)
+        reports.append(report)
+        if progress:
+            progress(report)
+        sigma /= 2.0
+        if np.isfinite(e) and e < best[0] or not np.isfinite(best[0]):
+            best = (e, level, candidate, deformed_next, (all_template, all_scan, all_sources))
+        elif stop_at_minimum:
+            break
+        fields, deformed, normals = candidate, deformed_next, normals_next
+
+    _, best_level, fields, deformed, (pt, ps, src) = best
+    deformed = deformed.copy()
+
+    if rigid_parts:
+        lm_after = _evaluate(fields, landmark_sources)
+        for part_index, part in enumerate(rigid_parts):
+            part = np.asarray(part, dtype=np.int64).reshape(-1)
+            if part.size == 0:
+                continue
+            if part.min() < 0 or part.max() >= n_vertices:
+                raise ValueError(f"rigid_parts[{part_index}] has vertex indices outside [0, {n_vertices})")
+            centre = template_vertices[part].mean(axis=0)
+            nearest = np.argsort(np.linalg.norm(landmark_sources - centre, axis=1))[:6]
+            motion = similarity_transform(landmark_sources[nearest], lm_after[nearest])
+            deformed[part] = motion.apply(template_vertices[part])
+
+    final = reports[best_level]
+    if final.coverage < 0.75:
+        warn(f"only {100 * final.coverage:.0f}% of the template has scan data near it (holes or a "
+             "partial scan); the rest is interpolated and cannot be trusted")
+    noise = surface_noise(scan_vertices, scan_faces, target.vertex_normals)
+    if np.isfinite(noise) and noise > noise_warning_mm:
+        warn(f"the scan is noisy (about {noise:.2f} mm along its normals); the fit follows it only "
+             "as far as rho and csrbf_smoothing allow; raise them if the result is rough")
+    if best_level == 0 and levels > 1:
+        warn("no refinement level lowered the error; the result is the feature-point RBF alone")
+
+    result_vertices = transform.apply_inverse(deformed)
+    correspondences = Correspondences(pt.copy(), ps.copy(), np.asarray(src, dtype=str))
+    return AdaptResult(result_vertices, deformed, transform, reports, best_level, correspondences,
+                       tuple(outliers), tuple(messages), tuple(fields))

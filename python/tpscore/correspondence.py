@@ -1,0 +1,327 @@
+"""New template-to-scan correspondences for each level of template adaptation.
+
+Three sources, all paired by rays so that a pair is only made where both surfaces
+are really there (a ray that misses, e.g. over a hole, gives no pair, never a guess):
+
+* the feature mesh: a triangulation of the corresponding feature points of the
+  template and of the scan; each triangle is split at its barycentre, and a ray
+  along the triangle's normal from that barycentre meets each surface at the new
+  feature point (Kaehler et al.'s refinement). The points accumulate over levels;
+* the template vertices of largest mean curvature (Meyer et al.) inside a bounding
+  box of the face, paired with the scan by a ray along the deformed normal;
+* optionally, evenly spread template vertices paired the same way, so the fit also
+  reaches the parts of the face outside the feature points' hull (forehead,
+  cheeks), where no feature triangle and few curvature vertices lie.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import Delaunay
+
+from ._validation import as_faces, as_points
+from .mesh import face_normals, mean_curvature
+from .spatial import MeshSurface
+
+__all__ = [
+    "FeatureMesh",
+    "ScanTarget",
+    "curvature_features",
+    "spread_vertices",
+    "triangulate_features",
+]
+
+
+class ScanTarget:
+    """A scan surface prepared for the ray pairing of adaptation.
+
+    Parameters
+    ----------
+    vertices : (n, 3) array_like
+        Scan vertices (mm), in the frame the fit works in.
+    faces : (m, 3) array_like of int
+        Triangles; rays never pair with a triangle that touches the scan's open
+        boundary (its outline and hole rims), where the surface is least reliable.
+    """
+
+    def __init__(self, vertices, faces):
+        from .mesh import boundary_vertices, vertex_normals
+
+        self.vertices = as_points(vertices, "scan vertices", allow_empty=False)
+        self.faces = as_faces(faces, len(self.vertices), "scan faces")
+        if len(self.faces) == 0:
+            raise ValueError("scan has no triangles; adaptation needs a surface (a mesh or a grid)")
+        self.surface = MeshSurface(self.vertices, self.faces)
+        self.face_normals = face_normals(self.vertices, self.faces)
+        self.vertex_normals = vertex_normals(self.vertices, self.faces)
+        rim = boundary_vertices(self.faces, len(self.vertices))
+        self.rim_vertices = rim
+        self.rim_faces = rim[self.faces].any(axis=1)
+
+    def cast(self, origins, directions, *, max_distance: float, min_cos: float = 0.5,
+             view_direction=None, min_view_cos: float = 0.2):
+        """Pair points with the scan by rays along `directions` (both ways).
+
+        Parameters
+        ----------
+        origins, directions : (m, 3) ndarray
+            Ray origins (mm) and directions (unit or not).
+        max_distance : float
+            Hits farther than this (mm) are ignored.
+        min_cos : float
+            The hit triangle's normal must be within arccos(min_cos) of the direction,
+            so a ray does not pair a surface with one facing elsewhere (inner lips
+            with the chin, a nostril with the upper lip).
+        view_direction : (3,) array_like, optional
+            Direction toward the scanner; points whose direction faces away from it
+            by more than arccos(min_view_cos) cannot have been seen and get no pair.
+
+        Returns
+        -------
+        hit : (m,) bool
+        points : (m, 3) ndarray, NaN where not hit.
+        """
+        origins = np.ascontiguousarray(origins, dtype=np.float64)
+        directions = np.ascontiguousarray(directions, dtype=np.float64)
+        m = len(origins)
+        if m == 0:
+            return np.zeros(0, dtype=bool), np.zeros((0, 3))
+        lengths = np.linalg.norm(directions, axis=1)
+        usable = lengths > 0
+        unit = np.zeros_like(directions)
+        unit[usable] = directions[usable] / lengths[usable, None]
+        if view_direction is not None:
+            usable &= unit @ np.asarray(view_direction, dtype=np.float64) >= min_view_cos
+        hit = np.zeros(m, dtype=bool)
+        points = np.full((m, 3), np.nan)
+        if not usable.any():
+            return hit, points
+        rays = self.surface.intersect_rays(origins[usable], unit[usable], max_distance=max_distance,
+                                           both_directions=True)
+        ok = rays.hit.copy()
+        triangles = np.where(ok, rays.triangles, 0)
+        ok &= ~self.rim_faces[triangles]
+        ok &= np.einsum("ij,ij->i", self.face_normals[triangles], unit[usable]) >= min_cos
+        where = np.flatnonzero(usable)
+        hit[where] = ok
+        points[where[ok]] = rays.points[ok]
+        return hit, points
+
+
+def _plane_axes(view_direction) -> np.ndarray:
+    """Two unit vectors spanning the plane orthogonal to the view direction."""
+    view = np.asarray(view_direction, dtype=np.float64)
+    view = view / np.linalg.norm(view)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(view[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = helper - (helper @ view) * view
+    u /= np.linalg.norm(u)
+    return np.stack([u, np.cross(view, u)], axis=1)
+
+
+def triangulate_features(points, view_direction=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Delaunay triangulation of feature points seen along `view_direction`.
+
+    Parameters
+    ----------
+    points : (n, 3) array_like
+        Feature points (mm), n >= 3, not all on one line in the view.
+    view_direction : (3,) array_like
+        The direction the face looks (the points are projected onto the plane
+        orthogonal to it).
+
+    Returns
+    -------
+    (m, 3) int64 triangles, counter-clockwise seen from the view direction.
+    """
+    points = as_points(points, "points")
+    if len(points) < 3:
+        raise ValueError(f"points: a feature mesh needs at least 3 points, got {len(points)}")
+    flat = points @ _plane_axes(view_direction)
+    try:
+        triangles = Delaunay(flat).simplices.astype(np.int64)
+    except Exception as exc:  # scipy raises QhullError for degenerate input
+        raise ValueError(f"points cannot be triangulated (collinear in the view?): {exc}") from None
+    a, b, c = (flat[triangles[:, k]] for k in range(3))
+    cross = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    flip = cross < 0
+    triangles[flip] = triangles[flip][:, [0, 2, 1]]
+    return triangles
+
+
+@dataclass
+class FeatureMesh:
+    """Corresponding feature points of template and scan, and their triangulation.
+
+    Attributes
+    ----------
+    template_points : (n, 3) ndarray
+        Feature points on the (undeformed) template, mm.
+    scan_points : (n, 3) ndarray
+        The corresponding scan points, mm, in the fit's frame.
+    triangles : (m, 3) int64
+        One triangulation shared by both point sets (made on the template side).
+    view_direction : (3,) ndarray
+        The direction the face looks, used for the triangulation.
+    """
+
+    template_points: np.ndarray
+    scan_points: np.ndarray
+    triangles: np.ndarray
+    view_direction: np.ndarray
+
+    @classmethod
+    def build(cls, template_points, scan_points, view_direction=(0.0, 0.0, 1.0)) -> "FeatureMesh":
+        template_points = as_points(template_points, "template_points")
+        scan_points = as_points(scan_points, "scan_points")
+        if template_points.shape != scan_points.shape:
+            raise ValueError(f"scan_points must have shape {template_points.shape}, got {scan_points.shape}")
+        view = np.asarray(view_direction, dtype=np.float64)
+        return cls(template_points, scan_points, triangulate_features(template_points, view), view)
+
+    def subdivide(self, template: MeshSurface, scan: ScanTarget, *, max_distance: float,
+                  min_area: float = 1.0):
+        """Split every triangle at its barycentre and project the new point onto both surfaces.
+
+        Parameters
+        ----------
+        template : MeshSurface
+            The undeformed template.
+        scan : ScanTarget
+            The scan, in the fit's frame.
+        max_distance : float
+            Longest ray (mm) on either side.
+        min_area : float
+            Triangles smaller than this (mm^2, on the template side) are not split:
+            their barycentres would add pairs closer than the data can resolve.
+
+        Returns
+        -------
+        FeatureMesh
+            The refined mesh (old points first, then the new ones, re-triangulated).
+        new_template_points, new_scan_points : (k, 3) ndarray
+            The new pairs (only those where both rays hit).
+        """
+        t = self.template_points[self.triangles]
+        s = self.scan_points[self.triangles]
+        t_normals = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        s_normals = np.cross(s[:, 1] - s[:, 0], s[:, 2] - s[:, 0])
+        area = 0.5 * np.linalg.norm(t_normals, axis=1)
+        big = area >= min_area
+        if not big.any():
+            return self, np.zeros((0, 3)), np.zeros((0, 3))
+        t_centres, s_centres = t[big].mean(axis=1), s[big].mean(axis=1)
+        t_hits = template.intersect_rays(t_centres, t_normals[big], max_distance=max_distance,
+                                         both_directions=True)
+        s_hit, s_points = scan.cast(s_centres, s_normals[big], max_distance=max_distance, min_cos=0.0)
+        both = t_hits.hit & s_hit
+        new_t, new_s = t_hits.points[both], s_points[both]
+        if len(new_t) == 0:
+            return self, new_t, new_s
+        template_points = np.vstack([self.template_points, new_t])
+        scan_points = np.vstack([self.scan_points, new_s])
+        refined = FeatureMesh(template_points, scan_points,
+                              triangulate_features(template_points, self.view_direction), self.view_direction)
+        return refined, new_t, new_s
+
+
+def _greedy_spread(order: np.ndarray, points: np.ndarray, spacing: float) -> np.ndarray:
+    """Walk `order` and keep each point farther than `spacing` from every kept one."""
+    if spacing <= 0:
+        return order
+    cells: dict[tuple[int, int, int], list[int]] = {}
+    kept = []
+    keys = np.floor(points / spacing).astype(np.int64)
+    limit = spacing * spacing
+    for index in order:
+        key = keys[index]
+        close = False
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for dz in (-1, 0, 1):
+                    for other in cells.get((key[0] + dx, key[1] + dy, key[2] + dz), ()):
+                        d = points[other] - points[index]
+                        if d @ d < limit:
+                            close = True
+                            break
+                    if close:
+                        break
+                if close:
+                    break
+            if close:
+                break
+        if not close:
+            cells.setdefault((int(key[0]), int(key[1]), int(key[2])), []).append(int(index))
+            kept.append(int(index))
+    return np.asarray(kept, dtype=np.int64)
+
+
+def curvature_features(vertices, faces, count: int, *, box=None, spacing: float = 0.0,
+                       sign: str = "absolute") -> np.ndarray:
+    """The vertices of largest mean curvature, spread out, inside a box.
+
+    Parameters
+    ----------
+    vertices : (n, 3) array_like
+        Mesh vertices (mm).
+    faces : (m, 3) array_like of int
+        Triangles, consistently oriented (outward normals).
+    count : int
+        How many vertices to return at most.
+    box : ((3,), (3,)) array_like, optional
+        Lower and upper corners (mm); only vertices inside are candidates.
+    spacing : float
+        No two returned vertices are closer than this (mm); 0 keeps the raw ranking.
+    sign : {"absolute", "convex", "concave"}
+        Rank by |H|, by H (bumps such as the nose tip) or by -H (folds).
+
+    Returns
+    -------
+    (k,) int64 vertex indices, k <= count, largest curvature first. Boundary
+    vertices (where the one-ring formula does not hold) are never chosen.
+    """
+    vertices = as_points(vertices, "vertices")
+    faces = as_faces(faces, len(vertices), "faces")
+    if sign not in ("absolute", "convex", "concave"):
+        raise ValueError(f"sign must be 'absolute', 'convex' or 'concave', got {sign!r}")
+    curvature = mean_curvature(vertices, faces).values
+    score = {"absolute": np.abs(curvature), "convex": curvature, "concave": -curvature}[sign]
+    candidate = np.isfinite(score)
+    if box is not None:
+        low, high = (np.asarray(c, dtype=np.float64) for c in box)
+        candidate &= np.all((vertices >= low) & (vertices <= high), axis=1)
+    indices = np.flatnonzero(candidate)
+    order = indices[np.argsort(-score[indices], kind="stable")]
+    # Only the best few times `count` can survive the spreading; the rest is not worth walking.
+    order = order[: max(20 * int(count), 1)]
+    return _greedy_spread(order, vertices, float(spacing))[: int(count)]
+
+
+def spread_vertices(vertices, spacing: float, candidates=None) -> np.ndarray:
+    """About one vertex per cube of side `spacing`: evenly spread samples of a mesh.
+
+    Parameters
+    ----------
+    vertices : (n, 3) array_like
+        Points (mm).
+    spacing : float
+        Cube side (mm), > 0.
+    candidates : (n,) bool array_like, optional
+        Only these vertices may be chosen.
+
+    Returns
+    -------
+    (k,) int64 indices, the vertex nearest the centre of each occupied cube.
+    """
+    vertices = as_points(vertices, "vertices")
+    pool = np.arange(len(vertices)) if candidates is None else np.flatnonzero(candidates)
+    if len(pool) == 0:
+        return pool.astype(np.int64)
+    scaled = vertices[pool] / spacing
+    cells = np.floor(scaled).astype(np.int64)
+    offset = np.linalg.norm(scaled - cells - 0.5, axis=1)
+    order = np.lexsort((offset, cells[:, 2], cells[:, 1], cells[:, 0]))
+    sorted_cells = cells[order]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = np.any(sorted_cells[1:] != sorted_cells[:-1], axis=1)
+    return np.sort(pool[order[first]]).astype(np.int64)
