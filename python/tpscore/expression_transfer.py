@@ -38,7 +38,7 @@ from .action_units import ActionUnit, ActionUnitLibrary, Activation, default_lib
 from .alignment import align_rigid
 from .csrbf import CSRBF
 from .landmarks import landmark_index, landmark_map
-from .motion import DenseMotion, MotionOptions, register_surfaces
+from .motion import AdaptedMotion, DenseMotion, MotionOptions, adapt_motion, register_surfaces
 from .normalise import FrameTransform, landmark_transform
 from .preprocess import FaceGrid
 from .rbf import TPS
@@ -78,9 +78,11 @@ class TransferOptions:
         face; :mod:`tpscore.alignment`) and gives it the neutral scan's normalisation;
         ``"normalise"`` normalises it on its own landmarks (the method as published,
         which removes real motion of the landmarks it uses).
-    motion : {"dense", "landmarks"}
+    motion : {"dense", "adapt", "landmarks"}
         How the source's motion is modelled: ``"dense"`` registers the neutral surface
-        onto the expressive one (:mod:`tpscore.motion`); ``"landmarks"`` maps the
+        onto the expressive one (:mod:`tpscore.motion`: B-spline non-rigid ICP);
+        ``"adapt"`` does it with the multilevel RBF/CSRBF template adaptation
+        (:func:`tpscore.adapt`); ``"landmarks"`` maps the
         control points with the landmark TPS and snaps them onto the expressive scan
         (the method as published).
     animation : {"field", "control-points"}
@@ -88,7 +90,7 @@ class TransferOptions:
         target vertex reads the source's motion at its corresponding point, through
         the landmark TPS target -> source) within the AU's region; ``"control-points"``
         moves the AU's control points and warps the region with an interpolant
-        through them (the method as published). ``"field"`` needs ``motion="dense"``.
+        through them (the method as published). ``"field"`` needs a dense motion.
     warp : {"tps", "wendland"}
         Interpolant of the control-point warp: the thin-plate spline, or Wendland's
         compactly supported RBF with support ``wendland_support_mm`` (no motion beyond
@@ -146,7 +148,7 @@ class TransferOptions:
 
     def __post_init__(self):
         choices = {"normalisation": ("similarity", "affine"), "alignment": ("rigid", "normalise"),
-                   "motion": ("dense", "landmarks"), "animation": ("field", "control-points"),
+                   "motion": ("dense", "adapt", "landmarks"), "animation": ("field", "control-points"),
                    "warp": ("tps", "wendland"), "snap": ("surface", "vertex")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -161,8 +163,8 @@ class TransferOptions:
             raise ValueError(f"wendland_support_mm must be finite and > 0, got {self.wendland_support_mm!r}")
         if self.anchors and self.anchor_spacing_mm <= 0:
             raise ValueError("anchor_spacing_mm must be > 0 when anchors are on")
-        if self.animation == "field" and self.motion != "dense":
-            raise ValueError("animation='field' needs motion='dense' (a landmark model has no field)")
+        if self.animation == "field" and self.motion == "landmarks":
+            raise ValueError("animation='field' needs a dense motion (a landmark model has no field)")
         if not isinstance(self.motion_options, MotionOptions):
             raise ValueError("motion_options must be a MotionOptions")
 
@@ -300,7 +302,7 @@ class ExpressionModel:
     source: NormalisedFace
     motions: list[ControlPointMotion]
     options: TransferOptions
-    dense: DenseMotion | None = None
+    dense: DenseMotion | AdaptedMotion | None = None
 
     @property
     def labels(self) -> list[str]:
@@ -329,8 +331,10 @@ def align_expressive(neutral: NormalisedFace, neutral_grid: FaceGrid, expressive
 
 
 def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFace,
-                 options: TransferOptions = TransferOptions()) -> DenseMotion:
+                 options: TransferOptions = TransferOptions()) -> DenseMotion | AdaptedMotion:
     """Register the neutral source onto its expressive scan (both in the reference frame)."""
+    if options.motion == "adapt":
+        return adapt_motion(source_neutral.grid, source_expressive.grid)
     return register_surfaces(source_neutral.grid.points, source_neutral.grid.mask,
                              source_neutral.landmarks, source_expressive.surface(),
                              source_expressive.landmarks, options.motion_options)
@@ -356,7 +360,7 @@ def model_expression(source_neutral: NormalisedFace, source_expressive: Normalis
                              smoothing=options.landmark_smoothing,
                              merge_mm=options.merge_landmarks_mm, what="reference -> source")
     dense = None
-    if options.motion == "dense":
+    if options.motion != "landmarks":
         dense = dense_motion(source_neutral, source_expressive, options)
     else:
         to_expressive = landmark_map(source_neutral.landmarks, source_expressive.landmarks,

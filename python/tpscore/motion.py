@@ -38,7 +38,8 @@ import scipy.sparse as sp
 from .sparse import SparseCholesky
 from .spatial import MeshSurface
 
-__all__ = ["MotionOptions", "DenseMotion", "BSplineLattice", "register_surfaces"]
+__all__ = ["MotionOptions", "DenseMotion", "BSplineLattice", "register_surfaces", "AdaptedMotion",
+           "adapt_motion"]
 
 
 @dataclass(frozen=True)
@@ -68,10 +69,10 @@ class MotionOptions:
 
     spacing_mm: float = 8.0
     sample_step: int = 2
-    iterations: int = 10
+    iterations: int = 6
     stiffness_start: float = 100.0
     stiffness_end: float = 1.0
-    landmark_weight: float = 30.0
+    landmark_weight: float = 3.0
     tangential_weight: float = 0.05
     tukey_factor: float = 3.0
     min_scale_mm: float = 0.5
@@ -283,3 +284,36 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         values = solution.reshape(3, n_nodes).T.copy()
     return DenseMotion(lattice, values, residual_rms, inliers)
 
+
+
+class AdaptedMotion:
+    """A displacement field from :func:`tpscore.adapt` (multilevel RBF/CSRBF template
+    adaptation of the neutral grid onto the expressive surface), callable like
+    :class:`DenseMotion`."""
+
+    def __init__(self, result):
+        self.result = result
+
+    def __call__(self, points) -> np.ndarray:
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        out = np.full(p.shape, np.nan)
+        ok = np.isfinite(p).all(axis=1)
+        if ok.any():
+            out[ok] = self.result.deform(p[ok]) - p[ok]
+        return out
+
+
+def adapt_motion(neutral_grid, expressive_grid, **adapt_options) -> AdaptedMotion:
+    """Register a neutral face grid onto the same person's expressive grid with the
+    template adaptation (both already in one frame: no calibration)."""
+    import warnings
+
+    from .adaptation import AdaptationWarning, adapt
+
+    with warnings.catch_warnings():
+        # its warnings concern fitting a template to a stranger's scan; here the two
+        # surfaces are one person's, and the fidelity benchmark measures the outcome
+        warnings.simplefilter("ignore", AdaptationWarning)
+        result = adapt(neutral_grid, expressive_grid, neutral_grid.landmarks,
+                       expressive_grid.landmarks, calibration="none", **adapt_options)
+    return AdaptedMotion(result)
