@@ -21,9 +21,13 @@ add of precomputed fields (:class:`Animation`).
 
 :class:`TransferOptions` switches between the method as published
 (:meth:`TransferOptions.thesis`) and the defaults, which measured better on the
-fidelity benchmark (README): surface snapping instead of nearest-vertex snapping,
-similarity normalisation, zero-motion anchor points in the region, and a smooth region
-boundary.
+fidelity benchmark (README): the source's expressive scan aligned rigidly onto its
+neutral scan (:mod:`tpscore.alignment`) instead of normalised on its own landmarks, a
+dense registration of the neutral onto the expressive surface (:mod:`tpscore.motion`)
+instead of landmark-driven control points, and that displacement field carried to the
+target through the landmark correspondence within the AU's region, with a smooth
+region boundary. The control-point animation (TPS with anchors, or a Wendland warp)
+remains available (``animation="control-points"``).
 """
 from __future__ import annotations
 
