@@ -74,9 +74,8 @@ def main(argv=None) -> int:
                     help="target = (source + offset) mod n for each offset: n pairs per offset")
     ap.add_argument("--aus", nargs="+", default=list(AU_CODES))
     ap.add_argument("--variants", nargs="+", default=["noop", "thesis", "default"],
-                    help="noop, thesis, default, or an ablation: thesis+similarity, "
-                         "thesis+surface-snap, thesis+merge-landmarks, thesis+anchors, "
-                         "default-hard-seam, default-no-anchors")
+                    help="noop, thesis, default, or an ablation (see the variants table "
+                         "in the code): landmark-model, dense-control-points, adapt-field, ...")
     ap.add_argument("--out", default=str(ROOT / "bench-output"))
     args = ap.parse_args(argv)
 
@@ -95,16 +94,23 @@ def main(argv=None) -> int:
     ensure_scans(shared, scans, subjects)
 
     thesis = TransferOptions.thesis()
+    default = TransferOptions()
     variants = {
         "thesis": thesis,
+        "landmark-model": TransferOptions.landmark_model(),
+        "landmark-model-normalise": replace(TransferOptions.landmark_model(), alignment="normalise"),
+        "dense-control-points": replace(default, animation="control-points"),
+        "dense-control-points-wendland": replace(default, animation="control-points", warp="wendland"),
+        "default-no-mouth-scale": replace(default, scale_lower_face=False),
+        "default-hard-seam": replace(default, transition_mm=0.0),
         # each of the defaults' departures from the method, added on its own
         "thesis+similarity": replace(thesis, normalisation="similarity"),
         "thesis+surface-snap": replace(thesis, snap="surface"),
         "thesis+merge-landmarks": replace(thesis, merge_landmarks_mm=TransferOptions().merge_landmarks_mm),
         "thesis+anchors": replace(thesis, anchors=True),
-        "default-hard-seam": replace(TransferOptions(), transition_mm=0.0),
-        "default-no-anchors": replace(TransferOptions(), anchors=False),
-        "default": TransferOptions(),
+        "default-fade-small": replace(default, still_motion_mm=0.5),
+        "adapt-field": replace(default, motion="adapt"),
+        "default": default,
     }
     for name in args.variants:
         if name not in variants and name != "noop":
@@ -166,27 +172,39 @@ def main(argv=None) -> int:
                 variant=variant, au=au, pairs=len(rs),
                 mean_ratio=float(np.nanmean(ratio)), median_ratio=float(np.nanmedian(ratio)),
                 worst_ratio=float(np.nanmax(ratio)),
+                worse_than_noop=int(np.sum(ratio > 1.0)),
                 rms_mm=float(np.nanmean([r["rms_mm"] for r in rs])),
                 leak_mm=float(np.nanmean([r["leak_rms_mm"] for r in rs])),
                 pred_missing=int(sum(r["n_pred_missing"] for r in rs))))
-    lines = ["| variant | AU | pairs | mean ratio | median ratio | worst ratio | rms mm | leak mm | pred missing |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| variant | AU | pairs | mean ratio | median ratio | worst ratio | worse than no-op | "
+             "rms mm | leak mm | pred missing |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['variant']} | {r['au']} | {r['pairs']} | {r['mean_ratio']:.3f} | "
-                     f"{r['median_ratio']:.3f} | {r['worst_ratio']:.3f} | {r['rms_mm']:.3f} | "
-                     f"{r['leak_mm']:.3f} | {r['pred_missing']} |")
+                     f"{r['median_ratio']:.3f} | {r['worst_ratio']:.3f} | {r['worse_than_noop']} | "
+                     f"{r['rms_mm']:.3f} | {r['leak_mm']:.3f} | {r['pred_missing']} |")
     lines.append("")
-    lines.append("| variant | mean ratio over AUs | mean leak mm |")
-    lines.append("|---|---:|---:|")
+    lines.append("| variant | mean ratio over AUs | worst AU (mean ratio) | mean leak mm | "
+                 "transfers worse than no-op | pred missing |")
+    lines.append("|---|---:|---:|---:|---:|---:|")
     for variant in args.variants:
         vr = [r for r in rows if r["variant"] == variant]
+        worst = max(vr, key=lambda r: r["mean_ratio"])
         lines.append(f"| {variant} | {np.mean([r['mean_ratio'] for r in vr]):.3f} | "
-                     f"{np.mean([r['leak_mm'] for r in vr]):.3f} |")
+                     f"AU{worst['au']} ({worst['mean_ratio']:.3f}) | "
+                     f"{np.mean([r['leak_mm'] for r in vr]):.3f} | "
+                     f"{sum(r['worse_than_noop'] for r in vr)} / {sum(r['pairs'] for r in vr)} | "
+                     f"{sum(r['pred_missing'] for r in vr)} |")
     lines.append("")
     lines.append("| stage | mean time per call |")
     lines.append("|---|---:|")
     for stage, ts in timings.items():
         lines.append(f"| {stage} | {1e3 * np.mean(ts):.1f} ms |")
+    for variant in args.variants:
+        if variant == "noop" or not timings[f"transfer ({variant})"]:
+            continue
+        three = 3 * np.mean(timings["load+resample"]) + np.mean(timings[f"transfer ({variant})"])
+        lines.append(f"| {variant}: 3 scans loaded and resampled + transfer | {1e3 * three:.1f} ms |")
     table = "\n".join(lines)
     print(table)
     out.mkdir(parents=True, exist_ok=True)

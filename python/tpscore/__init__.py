@@ -21,6 +21,8 @@ from .expression_transfer import (
     normalise_face,
     transfer,
 )
+from .alignment import RigidAlignment, align_rigid
+from .motion import DenseMotion, MotionOptions, register_surfaces
 from .adaptation import AdaptationWarning, AdaptLevel, AdaptResult, Correspondences, adapt
 from .calibration import AxesCalibration, axes_calibration, calibrate
 from .correspondence import FeatureMesh, curvature_features
@@ -98,6 +100,11 @@ __all__ = [
     "NormalisedFace",
     "normalise_face",
     "TransferOptions",
+    "align_rigid",
+    "RigidAlignment",
+    "register_surfaces",
+    "DenseMotion",
+    "MotionOptions",
     "ExpressionModel",
     "model_expression",
     "Animation",

@@ -21,9 +21,13 @@ add of precomputed fields (:class:`Animation`).
 
 :class:`TransferOptions` switches between the method as published
 (:meth:`TransferOptions.thesis`) and the defaults, which measured better on the
-fidelity benchmark (README): surface snapping instead of nearest-vertex snapping,
-similarity normalisation, zero-motion anchor points in the region, and a smooth region
-boundary.
+fidelity benchmark (README): the source's expressive scan aligned rigidly onto its
+neutral scan (:mod:`tpscore.alignment`) instead of normalised on its own landmarks, a
+dense registration of the neutral onto the expressive surface (:mod:`tpscore.motion`)
+instead of landmark-driven control points, and that displacement field carried to the
+target through the landmark correspondence within the AU's region, with a smooth
+region boundary. The control-point animation (TPS with anchors, or a Wendland warp)
+remains available (``animation="control-points"``).
 """
 from __future__ import annotations
 
@@ -35,11 +39,14 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .action_units import ActionUnit, ActionUnitLibrary, Activation, default_library
+from .alignment import align_rigid
+from .csrbf import CSRBF
 from .landmarks import landmark_index, landmark_map
+from .motion import AdaptedMotion, DenseMotion, MotionOptions, adapt_motion, register_surfaces
 from .normalise import FrameTransform, landmark_transform
 from .preprocess import FaceGrid
 from .rbf import TPS
-from .regions import region_weight
+from .regions import region_weight, side_weight
 from .spatial import KDTree, MeshSurface
 
 __all__ = [
@@ -49,6 +56,8 @@ __all__ = [
     "place_control_points",
     "ControlPointMotion",
     "ExpressionModel",
+    "align_expressive",
+    "dense_motion",
     "model_expression",
     "Animation",
     "animate",
@@ -67,54 +76,117 @@ class TransferOptions:
     ----------
     normalisation : {"similarity", "affine"}
         Pose/size normalisation to the reference (see :mod:`tpscore.normalise`).
+    alignment : {"rigid", "normalise"}
+        How the source's expressive scan joins its neutral scan: ``"rigid"`` aligns it
+        rigidly onto the neutral scan (landmarks, then ICP on the still region of the
+        face; :mod:`tpscore.alignment`) and gives it the neutral scan's normalisation;
+        ``"normalise"`` normalises it on its own landmarks (the method as published,
+        which removes real motion of the landmarks it uses).
+    motion : {"dense", "adapt", "landmarks"}
+        How the source's motion is modelled: ``"dense"`` registers the neutral surface
+        onto the expressive one (:mod:`tpscore.motion`: B-spline non-rigid ICP);
+        ``"adapt"`` does it with the multilevel RBF/CSRBF template adaptation
+        (:func:`tpscore.adapt`); ``"landmarks"`` maps the
+        control points with the landmark TPS and snaps them onto the expressive scan
+        (the method as published).
+    animation : {"field", "control-points"}
+        ``"field"`` carries the dense displacement field over to the target (each
+        target vertex reads the source's motion at its corresponding point, through
+        the landmark TPS target -> source) within the AU's region; ``"control-points"``
+        moves the AU's control points and warps the region with an interpolant
+        through them (the method as published). ``"field"`` needs a dense motion.
+    warp : {"tps", "wendland"}
+        Interpolant of the control-point warp: the thin-plate spline, or Wendland's
+        compactly supported RBF with support ``wendland_support_mm`` (no motion beyond
+        the support around the control points).
     snap : {"surface", "vertex"}
         Snap mapped control points to the closest point of the surface, or to the
         nearest grid vertex (the method as published).
     anchors : bool
-        Add zero-motion anchor points to each AU's warp: the region's landmarks and a
-        lattice of surface points farther than ``anchor_distance_mm`` from every
-        control point of the AU. Without anchors the TPS's affine part may move the
-        whole region.
+        Add zero-motion anchor points to each AU's control-point warp: the region's
+        landmarks and a lattice of surface points farther than ``anchor_distance_mm``
+        from every control point of the AU. Without anchors the TPS's affine part may
+        move the whole region.
     anchor_distance_mm, anchor_spacing_mm : float
         Clearance around the control points, and the lattice spacing of the anchors.
+    wendland_support_mm : float
+        Support radius of the Wendland warp.
     transition_mm : float
         Width of the smooth blend across the upper/lower boundary (0 = hard seam).
+    side_transition_mm : float
+        Width of the smooth blend across the midline for one-sided AUs (``12L``) in
+        the field animation.
+    still_motion_mm : float
+        Source motion below about this size is treated as registration noise and
+        faded out (a smooth ramp from half of it to one and a half times it); 0 keeps
+        every motion.
+    scale_lower_face : bool
+        Scale lower-face motion by the ratio of the mouth widths, target / source.
     landmark_smoothing : float
         Smoothing lambda of the landmark TPS maps (0 = interpolate the landmarks).
     merge_landmarks_mm : float
         Landmarks of one face closer than this are merged (their mean) before a
         landmark TPS: the inner-lip landmarks of a closed mouth nearly coincide and
         otherwise make the map fold.
+    motion_options : MotionOptions
+        Settings of the dense registration.
     """
 
     normalisation: str = "similarity"
+    alignment: str = "rigid"
+    motion: str = "dense"
+    animation: str = "field"
+    warp: str = "tps"
     snap: str = "surface"
     anchors: bool = True
     anchor_distance_mm: float = 18.0
     anchor_spacing_mm: float = 12.0
+    wendland_support_mm: float = 40.0
     transition_mm: float = 10.0
+    side_transition_mm: float = 10.0
+    still_motion_mm: float = 0.0
+    scale_lower_face: bool = True
     landmark_smoothing: float = 0.0
     merge_landmarks_mm: float = 3.0
+    motion_options: MotionOptions = MotionOptions()
 
     def __post_init__(self):
-        if self.normalisation not in ("similarity", "affine"):
-            raise ValueError(f"normalisation must be 'similarity' or 'affine', got {self.normalisation!r}")
-        if self.snap not in ("surface", "vertex"):
-            raise ValueError(f"snap must be 'surface' or 'vertex', got {self.snap!r}")
+        choices = {"normalisation": ("similarity", "affine"), "alignment": ("rigid", "normalise"),
+                   "motion": ("dense", "adapt", "landmarks"), "animation": ("field", "control-points"),
+                   "warp": ("tps", "wendland"), "snap": ("surface", "vertex")}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
         for name in ("anchor_distance_mm", "anchor_spacing_mm", "transition_mm",
-                     "landmark_smoothing", "merge_landmarks_mm"):
+                     "side_transition_mm", "still_motion_mm", "landmark_smoothing",
+                     "merge_landmarks_mm"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:
                 raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+        if not np.isfinite(self.wendland_support_mm) or self.wendland_support_mm <= 0:
+            raise ValueError(f"wendland_support_mm must be finite and > 0, got {self.wendland_support_mm!r}")
         if self.anchors and self.anchor_spacing_mm <= 0:
             raise ValueError("anchor_spacing_mm must be > 0 when anchors are on")
+        if self.animation == "field" and self.motion == "landmarks":
+            raise ValueError("animation='field' needs a dense motion (a landmark model has no field)")
+        if not isinstance(self.motion_options, MotionOptions):
+            raise ValueError("motion_options must be a MotionOptions")
 
     @classmethod
     def thesis(cls) -> "TransferOptions":
-        """The method exactly as published: affine normalisation, nearest-vertex snapping,
-        control points only, hard region seam, raw landmarks."""
-        return cls(normalisation="affine", snap="vertex", anchors=False, transition_mm=0.0,
-                   landmark_smoothing=0.0, merge_landmarks_mm=0.0)
+        """The method exactly as published: each scan normalised on its own landmarks by
+        the affine map, control points moved by the landmark TPS and nearest-vertex
+        snapping, a TPS warp through the control points only, hard region seam, raw
+        landmarks."""
+        return cls(normalisation="affine", alignment="normalise", motion="landmarks",
+                   animation="control-points", warp="tps", snap="vertex", anchors=False,
+                   transition_mm=0.0, landmark_smoothing=0.0, merge_landmarks_mm=0.0)
+
+    @classmethod
+    def landmark_model(cls) -> "TransferOptions":
+        """The best variant without dense motion: rigid alignment, landmark-modelled
+        control points, anchored TPS warp, smooth seam."""
+        return cls(motion="landmarks", animation="control-points")
 
 
 # --------------------------------------------------------------------------- faces
@@ -225,37 +297,92 @@ class ControlPointMotion:
 
 @dataclass
 class ExpressionModel:
-    """The modelled motion of one or more AUs on a source person."""
+    """The modelled motion of one or more AUs on a source person.
+
+    ``dense`` is the registered displacement field of the source (None for the
+    landmark model); ``motions`` hold each AU's control points and their motion.
+    """
 
     source: NormalisedFace
     motions: list[ControlPointMotion]
     options: TransferOptions
+    dense: DenseMotion | AdaptedMotion | None = None
 
     @property
     def labels(self) -> list[str]:
         return [m.activation.label for m in self.motions]
 
 
+def align_expressive(neutral: NormalisedFace, neutral_grid: FaceGrid, expressive_grid: FaceGrid,
+                     regions: Sequence[str] = ()) -> NormalisedFace:
+    """The source's expressive scan in the reference frame, by rigid alignment onto the
+    same person's neutral scan (:func:`tpscore.alignment.align_rigid`) followed by the
+    neutral scan's normalisation.
+
+    When every AU moves one region, the ICP relies on the other region (a smile does not
+    move the forehead, a brow raise not the chin); otherwise on the whole face, robustly.
+    """
+    still = None
+    if len(set(regions)) == 1:
+        moving_region = next(iter(regions))
+        still = region_weight("lower" if moving_region == "upper" else "upper",
+                              expressive_grid.points, expressive_grid.landmarks, 10.0)
+    alignment = align_rigid(expressive_grid, neutral_grid, fixed_surface=None, still_weight=still)
+    transform = alignment.transform.then(neutral.transform)
+    moved = replace(expressive_grid, points=transform.apply(expressive_grid.points),
+                    landmarks=transform.apply(expressive_grid.landmarks))
+    return NormalisedFace(moved, transform)
+
+
+def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFace,
+                 options: TransferOptions = TransferOptions()) -> DenseMotion | AdaptedMotion:
+    """Register the neutral source onto its expressive scan (both in the reference frame)."""
+    if options.motion == "adapt":
+        return adapt_motion(source_neutral.grid, source_expressive.grid)
+    return register_surfaces(source_neutral.grid.points, source_neutral.grid.mask,
+                             source_neutral.landmarks, source_expressive.surface(),
+                             source_expressive.landmarks, options.motion_options)
+
+
+def _fade_small(displacement: np.ndarray, still_mm: float) -> np.ndarray:
+    """Fade displacements shorter than about still_mm out (smooth ramp from 0.5 to 1.5
+    times it): registration noise where the skin does not move would otherwise leak."""
+    if still_mm <= 0:
+        return displacement
+    length = np.linalg.norm(displacement, axis=-1, keepdims=True)
+    t = np.clip(length / still_mm - 0.5, 0.0, 1.0)
+    return displacement * (t * t * (3.0 - 2.0 * t))
+
+
 def model_expression(source_neutral: NormalisedFace, source_expressive: NormalisedFace,
                      activations: Sequence[Activation], reference: NormalisedFace,
                      options: TransferOptions = TransferOptions()) -> ExpressionModel:
-    """Modelling: each AU's control points on the neutral source and their motion v_i."""
+    """Modelling: each AU's control points on the neutral source and their motion v_i,
+    from the dense registration (``options.motion == "dense"``) or from the landmark TPS
+    and a snap onto the expressive scan (the method as published)."""
     to_source = landmark_map(reference.landmarks, source_neutral.landmarks,
                              smoothing=options.landmark_smoothing,
                              merge_mm=options.merge_landmarks_mm, what="reference -> source")
-    to_expressive = landmark_map(source_neutral.landmarks, source_expressive.landmarks,
-                                 smoothing=options.landmark_smoothing,
-                                 merge_mm=options.merge_landmarks_mm,
-                                 what="source neutral -> expressive")
+    dense = None
+    if options.motion != "landmarks":
+        dense = dense_motion(source_neutral, source_expressive, options)
+    else:
+        to_expressive = landmark_map(source_neutral.landmarks, source_expressive.landmarks,
+                                     smoothing=options.landmark_smoothing,
+                                     merge_mm=options.merge_landmarks_mm,
+                                     what="source neutral -> expressive")
     motions = []
     for act in activations:
         on_reference = place_control_points(act.action_unit, reference)
         neutral = source_neutral.snap(to_source(on_reference), options.snap)
-        expressive = source_expressive.snap(to_expressive(neutral), options.snap)
+        if dense is not None:
+            motion = _fade_small(dense(neutral), options.still_motion_mm)
+        else:
+            motion = source_expressive.snap(to_expressive(neutral), options.snap) - neutral
         weights = act.action_unit.side_weights(act.side) * act.weight
         motions.append(ControlPointMotion(act, tuple(act.action_unit.names), neutral,
-                                          (expressive - neutral) * weights[:, None]))
-    return ExpressionModel(source_neutral, motions, options)
+                                          motion * weights[:, None]))
+    return ExpressionModel(source_neutral, motions, options, dense)
 
 
 # --------------------------------------------------------------------------- animation
@@ -370,27 +497,44 @@ class Animation:
                    [c for a in animations for c in a.moved_control_points])
 
 
+def _lower_face_scale(model: ExpressionModel, target: NormalisedFace) -> float:
+    """s_t / s_s, the ratio of the mouth widths (1 with a warning when one is missing)."""
+    scale_s, scale_t = mouth_width(model.source.landmarks), mouth_width(target.landmarks)
+    if np.isfinite(scale_s * scale_t) and scale_s > 0:
+        return scale_t / scale_s
+    warnings.warn("a mouth corner is missing: lower-face motion is not scaled by mouth width",
+                  stacklevel=3)
+    return 1.0
+
+
 def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
     """Animation: carry the modelled motion onto the target and precompute the fields.
 
+    With ``options.animation == "field"`` each target vertex reads the source's dense
+    displacement at its corresponding point (landmark TPS target -> source), weighted by
+    the region (and side) of the AUs; otherwise each region is warped through the AUs'
+    moved control points (TPS with anchors, or Wendland).
+
     AUs of one region modelled from the same expressive scan share one warp (and one
     field, labelled e.g. ``AU1+AU4``): that scan shows their combined motion, so a
-    control point two AUs share (the inner brow of AU1 and AU4) carries that motion
-    once, not once per AU. AUs modelled from different scans are combined with
-    :meth:`Animation.combine`, where their fields add.
+    control point two AUs share (the inner brow of AU1 and AU4), or the field under
+    both, carries that motion once, not once per AU. AUs modelled from different scans
+    are combined with :meth:`Animation.combine`, where their fields add.
     """
     options = model.options
     to_target = landmark_map(model.source.landmarks, target.landmarks,
                              smoothing=options.landmark_smoothing,
                              merge_mm=options.merge_landmarks_mm, what="source -> target")
-    scale_s, scale_t = mouth_width(model.source.landmarks), mouth_width(target.landmarks)
-    lower_scale = scale_t / scale_s if np.isfinite(scale_s * scale_t) and scale_s > 0 else 1.0
-    if lower_scale == 1.0 and not np.isfinite(scale_s * scale_t):
-        warnings.warn("a mouth corner is missing: lower-face motion is not scaled by mouth width",
-                      stacklevel=2)
+    lower_scale = _lower_face_scale(model, target) if options.scale_lower_face else 1.0
     grid = target.grid
     flat = grid.points.reshape(-1, 3)
     valid = grid.mask.ravel()
+    carried = None
+    if options.animation == "field":
+        to_source = landmark_map(target.landmarks, model.source.landmarks,
+                                 smoothing=options.landmark_smoothing,
+                                 merge_mm=options.merge_landmarks_mm, what="target -> source")
+        carried = _fade_small(model.dense(to_source(flat[valid])), options.still_motion_mm)
     by_region: dict[str, list[ControlPointMotion]] = {}
     for motion in model.motions:
         by_region.setdefault(motion.activation.action_unit.region, []).append(motion)
@@ -401,21 +545,39 @@ def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
         control = target.snap(to_target(neutral), options.snap)
         scale = lower_scale if region == "lower" else 1.0
         displacement = np.vstack([m.motion for m in motions]) * scale
-        # shared points land on one place: merged, their (equal) motions averaged
-        centres, values = _dedupe(control, displacement)
-        if options.anchors:
-            anchors = _anchor_points(target, region_w, centres, options)
-            centres = np.vstack([centres, anchors])
-            values = np.vstack([values, np.zeros_like(anchors)])
-            centres, values = _dedupe(centres, values)
-        warp = TPS(centres, centres + values)
         field_flat = np.zeros_like(flat)
-        field_flat[valid] = warp.displacement(flat[valid]) * region_w.ravel()[valid, None]
+        if carried is not None:
+            # the scan shows the AUs' combined motion: each point takes it once, at the
+            # largest weight of the AUs that cover its side
+            share = np.max([m.activation.weight * side_weight(m.activation.side, grid.points,
+                                                              target.landmarks,
+                                                              options.side_transition_mm)
+                            for m in motions], axis=0)
+            weight = (region_w * share).ravel()[valid]
+            field_flat[valid] = carried * (scale * weight[:, None])
+        else:
+            warp = _control_point_warp(target, control, displacement, region_w, options)
+            field_flat[valid] = warp(flat[valid]) * region_w.ravel()[valid, None]
         labels.append("+".join(m.activation.label for m in motions))
         fields.append(field_flat.reshape(grid.points.shape))
         controls.append(control)
         moved.append(control + displacement)
     return Animation(target, labels, np.stack(fields), controls, moved)
+
+
+def _control_point_warp(target: NormalisedFace, control: np.ndarray, displacement: np.ndarray,
+                        region_w: np.ndarray, options: TransferOptions):
+    """The displacement field (a callable on (m, 3) points) of a region warp through the
+    control points: TPS or Wendland, with zero-motion anchors when asked."""
+    centres, values = _dedupe(control, displacement)
+    if options.anchors:
+        anchors = _anchor_points(target, region_w, centres, options)
+        centres = np.vstack([centres, anchors])
+        values = np.vstack([values, np.zeros_like(anchors)])
+        centres, values = _dedupe(centres, values)
+    if options.warp == "wendland":
+        return CSRBF(centres, values, options.wendland_support_mm)
+    return TPS(centres, centres + values).displacement
 
 
 # --------------------------------------------------------------------------- one call
@@ -504,11 +666,17 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
     activations = library.parse(action_units)
     ref_face = reference.as_normalised_face()
     lap("setup")
-    faces = [normalise_face(g, ref_face.landmarks, options.normalisation)
-             for g in (source_neutral, source_expressive, target)]
+    neutral = normalise_face(source_neutral, ref_face.landmarks, options.normalisation)
+    target_face = normalise_face(target, ref_face.landmarks, options.normalisation)
     lap("normalise")
-    model = model_expression(faces[0], faces[1], activations, ref_face, options)
+    if options.alignment == "rigid":
+        expressive = align_expressive(neutral, source_neutral, source_expressive,
+                                      [a.action_unit.region for a in activations])
+    else:
+        expressive = normalise_face(source_expressive, ref_face.landmarks, options.normalisation)
+    lap("align")
+    model = model_expression(neutral, expressive, activations, ref_face, options)
     lap("model")
-    animation = animate(model, faces[2])
+    animation = animate(model, target_face)
     lap("animate")
     return TransferResult(animation, magnitude, model, timings)

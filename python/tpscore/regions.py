@@ -17,11 +17,16 @@ import numpy as np
 
 from .landmarks import landmark_index
 
-__all__ = ["region_boundary", "upper_face_weight", "region_weight"]
+__all__ = ["region_boundary", "upper_face_weight", "region_weight", "midline_x", "side_weight"]
 
 _EYE_CORNERS = ("Outer left eye corner", "Inner left eye corner",
                 "Inner right eye corner", "Outer right eye corner")
 _FALLBACK = ("Nose saddle left", "Nose saddle right")
+_MIDLINE = ("Nose tip", "Upper lip outer middle", "Upper lip inner middle",
+            "Lower lip inner middle", "Lower lip outer middle", "Chin middle")
+_PAIRS = (("Inner left eye corner", "Inner right eye corner"),
+          ("Outer left eye corner", "Outer right eye corner"),
+          ("Left mouth corner", "Right mouth corner"))
 
 
 def region_boundary(landmarks) -> tuple[float, float]:
@@ -65,3 +70,34 @@ def region_weight(region: str, points, landmarks, transition_mm: float = 0.0) ->
     if region == "lower":
         return 1.0 - upper
     raise ValueError(f"region must be 'upper' or 'lower', got {region!r}")
+
+
+def midline_x(landmarks) -> float:
+    """x of the face's midline in a normalised frame (face looking toward +z): the median
+    x of the midline landmarks and of the midpoints of left/right pairs present; 0 when
+    none is present."""
+    lm = np.asarray(landmarks, dtype=np.float64)
+    xs = [lm[landmark_index(n), 0] for n in _MIDLINE]
+    xs += [0.5 * (lm[landmark_index(a), 0] + lm[landmark_index(b), 0]) for a, b in _PAIRS]
+    xs = np.array(xs)
+    xs = xs[np.isfinite(xs)]
+    return float(np.median(xs)) if len(xs) else 0.0
+
+
+def side_weight(side: str | None, points, landmarks, transition_mm: float = 0.0) -> np.ndarray:
+    """Weight in [0, 1] of one side of the face ('L': the subject's left, +x; 'R': the
+    right; None: both, all ones) at points (..., 3), with a smooth ramp of width
+    ``transition_mm`` across the midline; NaN points get 0."""
+    p = np.asarray(points, dtype=np.float64)
+    if side is None:
+        return np.where(np.isfinite(p[..., 0]), 1.0, 0.0)
+    if side not in ("L", "R"):
+        raise ValueError(f"side must be 'L', 'R' or None, got {side!r}")
+    across = p[..., 0] - midline_x(landmarks)
+    if side == "R":
+        across = -across
+    across = np.where(np.isfinite(across), across, -np.inf)
+    if transition_mm <= 0:
+        return (across > 0).astype(np.float64)
+    t = np.clip(across / transition_mm + 0.5, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
