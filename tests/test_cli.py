@@ -30,14 +30,12 @@ def test_transfer_writes_every_output(scan_files, tmp_path, capsys):
     assert code == 0
     printed = capsys.readouterr().out
     assert "transferred AU12" in printed
-    def distance_to_truth(text):
-        return float(text.split("distance to the true expressive scan: rms ")[1].split()[0])
-
-    # the neutral target (m = 0) is farther from the true expressive scan than the result
-    # (measured: 0.48 mm against 0.33 mm at m = 1, 0.8 mm between those)
-    assert main(["transfer", "--source-neutral", str(a), "--source-expr", str(b), "--target", str(c),
-                 "--au", "12", "--magnitude", "0", "--truth", str(d)]) == 0
-    assert distance_to_truth(printed) < 0.85 * distance_to_truth(capsys.readouterr().out)
+    # where the neutral target is off the true expressive surface, the result is closer
+    # to it (measured with the default pipeline: 0.6 of the neutral's distance)
+    line = printed.split("distance to the true expressive scan")[1].split("\n")[0]
+    result_rms = float(line.split("rms ")[1].split()[0])
+    neutral_rms = float(line.split("the neutral target: ")[1].split()[0])
+    assert result_rms < 0.8 * neutral_rms
     with np.load(out) as data:
         vertices, neutral, mask = data["vertices"], data["neutral"], data["mask"]
     assert vertices.shape == neutral.shape == mask.shape + (3,)

@@ -57,7 +57,7 @@ def _add_transfer(sub) -> None:
     p.add_argument("--gif", metavar="GIF", help="write an animation of the magnitude sweep 0 -> m -> 0")
     p.add_argument("--truth", metavar="D",
                    help="a real expressive scan of the target: adds an error heat map to --png "
-                        "(surface distance after a rigid landmark alignment) and prints the RMS")
+                        "(surface distance after a rigid alignment) and prints the RMS")
     p.add_argument("--truth-landmarks", metavar="FILE", help="landmarks of D (default: D's .lm3)")
     p.add_argument("--quiet", action="store_true")
 
@@ -96,10 +96,14 @@ def run_transfer(args) -> int:
         progress.step(f"wrote {args.mesh}")
     errors = None
     if args.truth:
-        errors = _distance_to_truth(result, load_scan(args.truth, args.truth_landmarks, shape=shape))
-        valid = errors[np.isfinite(errors)]
-        progress.step(f"distance to the true expressive scan: rms {np.sqrt(np.mean(valid ** 2)):.2f} mm, "
-                      f"95th percentile {np.percentile(valid, 95):.2f} mm over {len(valid)} vertices")
+        truth = load_scan(args.truth, args.truth_landmarks, shape=shape)
+        errors, neutral_errors = _distance_to_truth(result, truth, grids[2])
+        # score where the expression shows: the neutral target is off the true surface
+        moving = neutral_errors > 0.5
+        rms = lambda d: float(np.sqrt(np.mean(d ** 2)))  # noqa: E731
+        progress.step(f"distance to the true expressive scan where the neutral target is over 0.5 mm off "
+                      f"({int(moving.sum())} vertices): rms {rms(errors[moving]):.2f} mm "
+                      f"(the neutral target: {rms(neutral_errors[moving]):.2f} mm)")
     if args.png:
         images = [render.render_grid(g.points, g.mask) for g in grids]
         images.append(render.render_grid(result.vertices, result.mask))
@@ -120,21 +124,22 @@ def run_transfer(args) -> int:
     return 0
 
 
-def _distance_to_truth(result, truth) -> np.ndarray:
-    """(H, W) distance (mm) from each animated target vertex to the true expressive
-    surface, after a rigid landmark alignment of the truth onto the target scan; NaN
-    where the vertex is invalid or its closest point lies on the truth's outline."""
-    from .normalise import similarity_transform
+def _distance_to_truth(result, truth, target) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) distances (mm) from the animated target's vertices, and from its neutral
+    vertices, to the true expressive surface, after aligning the truth rigidly onto the
+    target's neutral scan (landmarks, then robust ICP, which the still part of the face
+    decides); NaN where the grid is invalid."""
+    from .alignment import align_rigid
     from .spatial import MeshSurface
 
-    target_landmarks = result.target.transform.apply_inverse(result.target.landmarks)
-    align = similarity_transform(truth.landmarks, target_landmarks, scale=False)
+    align = align_rigid(truth, target).transform
     mesh = truth.mesh()
     surface = MeshSurface(align.apply(mesh.vertices), mesh.faces)
-    distances = np.full(result.mask.shape, np.nan)
-    closest = surface.closest_point(result.vertices[result.mask])
-    distances[result.mask] = closest.distances
-    return distances
+    result_distances = np.full(result.mask.shape, np.nan)
+    neutral_distances = np.full(result.mask.shape, np.nan)
+    result_distances[result.mask] = surface.closest_point(result.vertices[result.mask]).distances
+    neutral_distances[result.mask] = surface.closest_point(result.neutral[result.mask]).distances
+    return result_distances, neutral_distances
 
 
 def run_build_afm(args) -> int:
