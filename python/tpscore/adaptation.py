@@ -33,8 +33,8 @@ import numpy as np
 
 from ._validation import as_faces, as_points
 from .calibration import calibrate
-from .correspondence import FeatureMesh, ScanTarget, curvature_features, spread_vertices
-from .csrbf import CSRBF, ConvergenceError
+from .correspondence import FeatureMesh, ScanTarget, curvature_features, self_occluded, spread_vertices
+from .csrbf import CSRBF, ConvergenceError, wendland
 from .fit_error import combined_error, distance_error, marker_error, surface_noise
 from .landmarks import N_LANDMARKS, landmark_index
 from .mesh import vertex_normals
@@ -208,6 +208,189 @@ def _as_feature_points(landmarks, vertices: np.ndarray, name: str) -> np.ndarray
     return as_points(landmarks, name, finite=False)
 
 
+class SurfaceOffset:
+    """An offset field o(p) = sum_j c_j phi_sigma(|p - p_j|) fitted point to plane.
+
+    Built by :func:`fit_surface_offset`; evaluates like the other level fields (a
+    callable from (m, 3) template-frame points to (m, 3) offsets, mm).
+
+    Attributes
+    ----------
+    centres : (n, 3) ndarray
+        The centres p_j (template frame, mm).
+    coefficients : (n, 3) ndarray
+        c_j (mm).
+    support : float
+        sigma (mm).
+    """
+
+    def __init__(self, centres: np.ndarray, coefficients: np.ndarray, support: float):
+        self.centres = centres
+        self.coefficients = coefficients
+        self.support = float(support)
+        self._tree = KDTree(centres)
+
+    def matrix(self, points: np.ndarray):
+        """The sparse (m, n) matrix phi_sigma(|points_i - p_j|)."""
+        import scipy.sparse as sp
+
+        offsets, indices, distances = self._tree.query_radius_csr(points, self.support)
+        values = wendland(distances / self.support)
+        return sp.csr_matrix((values, indices, offsets), shape=(len(points), len(self.centres)))
+
+    def __call__(self, points) -> np.ndarray:
+        points = as_points(points, "points")
+        if len(points) == 0:
+            return np.zeros((0, 3))
+        return np.asarray(self.matrix(points) @ self.coefficients)
+
+    def plus(self, coefficients: np.ndarray) -> "SurfaceOffset":
+        """The same field with `coefficients` added (one more iteration of a level)."""
+        return SurfaceOffset(self.centres, self.coefficients + coefficients, self.support)
+
+
+def fit_surface_offset(field: SurfaceOffset, template_points, current, targets, scan_normals, *,
+                       weights=None, point_weight: float = 0.0, landmark_template=None,
+                       landmark_current=None, landmark_targets=None, landmark_weight: float = 1.0,
+                       regularisation: float = 1.0) -> np.ndarray:
+    """Coefficients of the offset that best moves the current fit onto the scan.
+
+    Minimises, over the coefficients c (n, 3) of `field`'s basis,
+
+        sum_i w_i (m_i . (x_i + o(p_i) - q_i))^2 + point_weight sum_i w_i |x_i + o(p_i) - q_i|^2
+        + landmark_weight sum_l |x_l + o(p_l) - q_l|^2 + regularisation c^T Phi c
+
+    (Phi: the centres' kernel matrix, so the last term is the field's native norm).
+
+    Parameters
+    ----------
+    field : SurfaceOffset
+        Supplies the centres and support (its coefficients are ignored).
+    template_points : (m, 3) ndarray
+        p_i, template frame (mm).
+    current, targets, scan_normals : (m, 3) ndarray
+        x_i (the fit so far at p_i), q_i (scan partners) and unit m_i.
+    weights : (m,) ndarray, optional
+        w_i (default 1).
+    point_weight : float
+        eta, the weak point-to-point term (it keeps the sliding small where the
+        surface does not fix it).
+    landmark_template, landmark_current, landmark_targets : (k, 3) ndarray, optional
+        Feature points: template position, current fit and scan position.
+    landmark_weight : float
+        Their weight (each counts as this many surface pairs).
+    regularisation : float
+        lambda, > 0.
+
+    Returns
+    -------
+    (n, 3) ndarray of coefficients.
+    """
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    n = len(field.centres)
+    phi = field.matrix(template_points)
+    w = np.ones(len(template_points)) if weights is None else np.asarray(weights, dtype=np.float64)
+    residual = np.einsum("ij,ij->i", scan_normals, targets - current)
+    blocks = [[None] * 3 for _ in range(3)]
+    rhs = np.zeros(3 * n)
+    gap = targets - current
+    for a in range(3):
+        rhs[a * n:(a + 1) * n] = phi.T @ (w * (scan_normals[:, a] * residual + point_weight * gap[:, a]))
+        for b in range(a, 3):
+            diagonal = w * scan_normals[:, a] * scan_normals[:, b]
+            if a == b:
+                diagonal = diagonal + point_weight * w
+            block = (phi.T @ sp.diags(diagonal) @ phi).tocsr()
+            blocks[a][b] = block
+            if b != a:
+                blocks[b][a] = block.T
+    kernel = field.matrix(field.centres)
+    extra = regularisation * kernel
+    if landmark_template is not None and len(landmark_template):
+        phi_l = field.matrix(landmark_template)
+        extra = extra + landmark_weight * (phi_l.T @ phi_l)
+        lm_gap = landmark_targets - landmark_current
+        for a in range(3):
+            rhs[a * n:(a + 1) * n] += landmark_weight * (phi_l.T @ lm_gap[:, a])
+    for a in range(3):
+        blocks[a][a] = blocks[a][a] + extra
+    system = sp.bmat(blocks, format="csr")
+    # Conjugate gradients with a Jacobi preconditioner: the system is symmetric positive
+    # definite and well conditioned by the regulariser, and a direct factorisation fills in
+    # badly (tens of seconds at the finer supports).
+    inverse_diagonal = 1.0 / np.maximum(system.diagonal(), 1e-300)
+    preconditioner = spla.LinearOperator(system.shape, matvec=lambda x: inverse_diagonal * x)
+    solution, _ = spla.cg(system, rhs, M=preconditioner, rtol=1e-6, maxiter=2000)
+    return solution.reshape(3, n).T.copy()
+
+
+def fill_unseen_offsets(template_vertices, template_faces, offsets, anchored, *, order: int = 2,
+                        cotangent: bool = True) -> np.ndarray:
+    """Offsets over the template with the unanchored vertices filled in along the mesh.
+
+    The refinement levels know the scan only where the template was paired with it.
+    Vertices the scanner could not see (inside the nostrils, between the lips, under
+    the nose) are close in space to paired vertices of other parts of the face (the
+    upper lip, the ala), so a field over 3D space hands them those parts' offsets.
+    Along the mesh they are connected to their own rims instead: here their offsets
+    are the (bi)harmonic interpolation of the anchored vertices' offsets, minimising
+    ``|L d|^2`` (order 2) or ``d^T (-L) d`` (order 1) with the anchored offsets fixed.
+
+    Parameters
+    ----------
+    template_vertices : (n, 3) ndarray
+        The undeformed template (mm).
+    template_faces : (m, 3) int ndarray
+    offsets : (n, 3) ndarray
+        Current offsets (mm); kept at the anchored vertices.
+    anchored : (n,) bool
+        Vertices whose offsets the scan determined.
+    order : {1, 2}
+        Harmonic (1) or biharmonic (2) fill.
+    cotangent : bool
+        Cotangent weights (True) or uniform (graph) weights.
+
+    Returns
+    -------
+    (n, 3) ndarray.
+    """
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    from .mesh import cotan_laplacian
+
+    n = len(template_vertices)
+    free = ~anchored
+    used = np.zeros(n, dtype=bool)
+    used[np.unique(template_faces)] = True
+    free &= used
+    if not free.any() or not anchored.any():
+        return offsets
+    if cotangent:
+        laplacian = cotan_laplacian(template_vertices, template_faces)
+    else:
+        edges = np.concatenate([template_faces[:, [0, 1]], template_faces[:, [1, 2]], template_faces[:, [2, 0]]])
+        edges = np.unique(np.sort(edges, axis=1), axis=0)
+        ones = np.ones(len(edges))
+        adjacency = sp.coo_matrix((np.r_[ones, ones], (np.r_[edges[:, 0], edges[:, 1]],
+                                                        np.r_[edges[:, 1], edges[:, 0]])), shape=(n, n)).tocsr()
+        laplacian = adjacency - sp.diags(np.asarray(adjacency.sum(axis=1)).ravel())
+    operator = (laplacian.T @ laplacian) if order == 2 else -laplacian
+    operator = operator.tocsr()
+    free_rows = np.flatnonzero(free)
+    fixed_rows = np.flatnonzero(~free)
+    a_ff = operator[free_rows][:, free_rows].tocsc()
+    a_fx = operator[free_rows][:, fixed_rows]
+    rhs = -(a_fx @ offsets[fixed_rows])
+    # A tiny diagonal keeps islands of free vertices with no anchored neighbour solvable.
+    a_ff = a_ff + 1e-9 * sp.identity(len(free_rows), format="csc")
+    filled = offsets.copy()
+    filled[free_rows] = spla.splu(a_ff).solve(np.asarray(rhs))
+    return filled
+
+
 def find_outlier_landmarks(template_points, scan_points, *, threshold: float = 6.0,
                            smoothing: float = 1.0, max_outliers: int = 3) -> list[int]:
     """Feature points whose scan position disagrees with all the others.
@@ -270,7 +453,9 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
           held_out_landmarks=(), markers=None, alpha: float = 1.0, beta: float = 1.0,
           distance_threshold: float | None = None, vertex_weights=None, rigid_parts=None,
           scan_view=(0.0, 0.0, 1.0), outlier_threshold: float = 15.0, stop_at_minimum: bool = True,
-          noise_warning_mm: float = 0.6, progress: Callable[[AdaptLevel], None] | None = None) -> AdaptResult:
+          noise_warning_mm: float = 0.6, refinement: str = "surface", surface_iterations: int = 2,
+          regularisation: float = 1.0, point_weight: float = 0.0, landmark_weight: float = 20.0,
+          centre_spacing: float = 1.0 / 3.0, min_support: float = 0.0, fill_unseen: int = 0, progress: Callable[[AdaptLevel], None] | None = None) -> AdaptResult:
     """Fit a template mesh to a scan with a global RBF and multilevel CSRBF.
 
     Parameters
@@ -528,6 +713,54 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
 
     for level in range(1, int(levels)):
         level_start = time.perf_counter()
+        if refinement == "surface":
+            if sigma < min_support:
+                break
+            spacing = max(sigma * centre_spacing, 1e-3 * width)
+            offset = SurfaceOffset(template_vertices[spread_vertices(template_vertices, spacing)],
+                                   np.zeros((0, 3)), sigma)
+            offset = SurfaceOffset(offset.centres, np.zeros((len(offset.centres), 3)), sigma)
+            current = deformed
+            current_normals = normals
+            for _ in range(int(surface_iterations)):
+                candidates = np.ones(n_vertices, dtype=bool)
+                if view is not None:
+                    candidates &= current_normals @ view >= 0.2
+                    candidates &= ~self_occluded(current, template_faces, view)
+                rows = np.flatnonzero(candidates)
+                hit, partners, partner_normals = target.closest(current[rows], current_normals[rows],
+                                                                max_distance=max_ray)
+                rows = rows[hit]
+                lm_current = deformed[:0]
+                coefficients = fit_surface_offset(
+                    offset, template_vertices[rows], current[rows], partners[hit], partner_normals[hit],
+                    point_weight=point_weight, landmark_template=landmark_sources,
+                    landmark_current=_evaluate(fields, landmark_sources) + offset(landmark_sources),
+                    landmark_targets=landmark_targets, landmark_weight=landmark_weight,
+                    regularisation=regularisation)
+                offset = offset.plus(coefficients)
+                current = deformed + offset(template_vertices)
+                current_normals = vertex_normals(current, template_faces)
+            method, support = "surface", sigma
+            all_template, all_scan = template_vertices[rows], partners[hit]
+            all_sources = np.array(["surface"] * len(rows), dtype=object)
+            new = len(rows)
+            candidate = fields + [offset]
+            deformed_next = current
+            ed, em, e, coverage, normals_next = errors(candidate, deformed_next)
+            report = AdaptLevel(level, method, support, len(all_template), new, ed, em, e, coverage,
+                                time.perf_counter() - level_start)
+            reports.append(report)
+            if progress:
+                progress(report)
+            sigma /= 2.0
+            if np.isfinite(e) and e < best[0] or not np.isfinite(best[0]):
+                best = (e, level, candidate, deformed_next, (all_template, all_scan, all_sources))
+                best_anchors = rows
+            elif stop_at_minimum:
+                break
+            fields, deformed, normals = candidate, deformed_next, normals_next
+            continue
         new = 0
         if feature_mesh is not None and level <= feature_mesh_levels:
             feature_mesh, new_t, new_s = feature_mesh.subdivide(template_surface, target,
@@ -585,6 +818,12 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
 
     _, best_level, fields, deformed, (pt, ps, src) = best
     deformed = deformed.copy()
+    if fill_unseen and best_level > 0 and refinement == "surface":
+        anchored = np.zeros(n_vertices, dtype=bool)
+        anchored[best_anchors] = True
+        base = fields[0](template_vertices) if fill_unseen > 0 else template_vertices
+        deformed = base + fill_unseen_offsets(template_vertices, template_faces, deformed - base, anchored,
+                                              order=abs(int(fill_unseen)))
 
     if rigid_parts:
         lm_after = _evaluate(fields, landmark_sources)
