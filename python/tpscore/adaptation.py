@@ -54,8 +54,11 @@ __all__ = [
     "AdaptLevel",
     "AdaptResult",
     "Correspondences",
+    "SurfaceOffset",
     "adapt",
+    "fill_unseen_offsets",
     "find_outlier_landmarks",
+    "fit_surface_offset",
     "DEFAULT_FEATURE_BOX",
 ]
 
