@@ -134,12 +134,22 @@ def test_affine_copy_is_near_exact():
     moved = vertices @ matrix.T + np.array([3.0, -2.0, 5.0])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", AdaptationWarning)
-        result = adapt((vertices, faces), (moved, faces), index, moved[index], calibration="none", levels=4)
-    error = np.linalg.norm(result.vertices - moved, axis=1)
-    # an affine map is in the span of the RBF's affine part: the landmark level alone
-    # reproduces it up to the smoothing's pull (rho) and solver rounding
-    assert error.max() < 0.05, error.max()
+        result = adapt((vertices, faces), (moved, faces), index, moved[index], calibration="none", levels=4,
+                       fill_unseen=False)
+        filled = adapt((vertices, faces), (moved, faces), index, moved[index], calibration="none", levels=4)
+        interpolated = adapt((vertices, faces), (moved, faces), index, moved[index], calibration="none",
+                             levels=4, refinement="interpolate")
+    # an affine map is in the span of the RBF's affine part: level 0 reproduces it
+    # whatever rho, and the refinement levels then see zero residuals (solver rounding)
+    for fit in (result, interpolated):
+        error = np.linalg.norm(fit.vertices - moved, axis=1)
+        assert error.max() < 0.05, error.max()
     assert result.vertices.shape == vertices.shape
+    # the mesh fill of unpaired vertices does not reproduce a linear field on a curved
+    # surface exactly; for this 5% shear it moves them by a fraction of a millimetre
+    error = np.linalg.norm(filled.vertices - moved, axis=1)
+    assert error.max() < 0.3, error.max()
+    assert np.sqrt(np.mean(error**2)) < 0.05
 
 
 def _sphere(radius=50.0, n=40):
@@ -192,7 +202,11 @@ def test_adapt_faces_improves_on_landmark_rbf():
     # procedural identities differ by a few mm; Ed falls by about half)
     assert min(errors[1:]) < 0.7 * errors[0]
     assert result.levels[result.best_level].error == min(lv.error for lv in result.levels)
-    assert set(result.correspondences.source) >= {"landmark", "feature-mesh"}
+    assert set(result.correspondences.source) == {"surface"}
+    interpolated, _, _ = _adapt_faces(levels=5, stop_at_minimum=False, refinement="interpolate")
+    errors = [lv.distance_error for lv in interpolated.levels]
+    assert min(errors[1:]) < 0.7 * errors[0]
+    assert set(interpolated.correspondences.source) >= {"landmark", "feature-mesh"}
 
 
 def test_defective_noise_warns():
@@ -290,3 +304,112 @@ def test_cli_adapt_end_to_end(tmp_path):
                        "--template-landmarks", str(tmp_path / "template.lm3"),
                        "--scan-landmarks", str(tmp_path / "scan.lm3"), "--out", str(out)])
     assert status == 2
+
+
+# --------------------------------------------------------------------------- surface refinement
+
+def _grid_mesh(height, half=40.0, spacing=1.0):
+    """A height field z = height(x, y) over a square, as (vertices, faces) facing +z."""
+    axis = np.arange(-half, half + spacing / 2, spacing)
+    x, y = np.meshgrid(axis, axis, indexing="xy")
+    vertices = np.stack([x, y, height(x, y)], axis=-1).reshape(-1, 3)
+    n = len(axis)
+    faces = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a, b, c, d = i * n + j, i * n + j + 1, (i + 1) * n + j, (i + 1) * n + j + 1
+            faces += [[a, b, d], [a, d, c]]
+    return vertices, np.array(faces, dtype=np.int64)
+
+
+def _bump(shift):
+    return lambda x, y: 8.0 * np.exp(-((x - shift) ** 2 + y**2) / (2 * 6.0**2))
+
+
+def test_surface_refinement_lands_on_the_scan_and_keeps_the_feature_points():
+    from tpscore.spatial import MeshSurface
+
+    template, faces = _grid_mesh(_bump(0.0))
+    scan, _ = _grid_mesh(_bump(3.0))
+    # feature points on the flat border (where template and scan agree) and the apexes
+    apex = int(np.argmax(template[:, 2]))
+    corners = np.array([np.argmin(np.linalg.norm(template - p, axis=1)) for p in
+                        ([-35, -35, 0], [35, -35, 0], [-35, 35, 0], [35, 35, 0], [0, -35, 0], [0, 35, 0])]
+                       + [apex])
+    scan_landmarks = scan[corners]
+    scan_landmarks[-1] = scan[int(np.argmax(scan[:, 2]))]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AdaptationWarning)
+        result = adapt((template, faces), (scan, faces), corners, scan_landmarks, calibration="none",
+                       feature_box=None, rho=0.0)
+    inner = np.abs(template[:, :2]).max(axis=1) < 30.0
+    distance = MeshSurface(scan, faces).closest_point(result.vertices[inner]).distances
+    # the 3 mm shift of the bump puts its flanks up to about 2 mm off the scan; level 0
+    # (the feature points' RBF) cannot follow that, the point-to-plane levels bring
+    # every vertex within 0.1 mm
+    assert distance.max() < 0.1, distance.max()
+    assert result.best_level >= 1
+    # the feature points stay where they were put (the surface agrees with them here)
+    assert np.linalg.norm(result.vertices[apex] - scan_landmarks[-1]) < 0.3
+
+
+def test_fit_surface_offset_moves_along_the_normal_only_on_a_plane():
+    from tpscore.adaptation import SurfaceOffset, fit_surface_offset
+
+    template, faces = _grid_mesh(lambda x, y: 0.0 * x, half=20.0, spacing=2.0)
+    centres = template[spread_vertices(template, 5.0)]
+    field = SurfaceOffset(centres, np.zeros((len(centres), 3)), 15.0)
+    targets = template + np.array([0.7, -0.4, 2.0])  # a plane 2 mm up, paired with a slide
+    normals = np.tile([0.0, 0.0, 1.0], (len(template), 1))
+    coefficients = fit_surface_offset(field, template, template, targets, normals, regularisation=0.1)
+    offsets = field.plus(coefficients)(template)
+    inner = np.abs(template[:, :2]).max(axis=1) < 10.0
+    # the z shift is asked for everywhere and met inside (the border lacks support) up
+    # to a ripple: sums of Wendland functions do not reproduce a constant exactly and
+    # the regulariser pulls toward 0 between the centres (measured about 0.1 mm)
+    assert np.allclose(offsets[inner, 2], 2.0, atol=0.15), offsets[inner, 2].min()
+    assert abs(offsets[inner, 2].mean() - 2.0) < 0.05
+    assert np.abs(offsets[:, :2]).max() < 1e-6
+
+
+def test_self_occluded_finds_what_an_overhang_hides():
+    from tpscore.correspondence import self_occluded
+
+    lower, lower_faces = _grid_mesh(lambda x, y: 0.0 * x, half=10.0, spacing=1.0)
+    upper = lower[lower[:, 0] <= 0] + np.array([0.0, 0.0, 5.0])
+    upper_index = np.full(len(lower), -1)
+    upper_index[lower[:, 0] <= 0] = np.arange(len(upper)) + len(lower)
+    upper_faces = upper_index[lower_faces]
+    upper_faces = upper_faces[(upper_faces >= 0).all(axis=1)]
+    vertices = np.vstack([lower, upper])
+    faces = np.vstack([lower_faces, upper_faces])
+    hidden = self_occluded(vertices, faces, (0.0, 0.0, 1.0))
+    # lower vertices with x < 0 lie under the overhang; x > 0 and the overhang are open
+    # (x = 0 sits under its edge, which counts as inside: either answer is right)
+    assert hidden[: len(lower)][lower[:, 0] < -0.5].all()
+    assert not hidden[: len(lower)][lower[:, 0] > 0.5].any()
+    assert not hidden[len(lower):].any()
+
+
+def test_fill_unseen_offsets_reproduces_a_linear_field_on_a_flat_mesh():
+    from tpscore.adaptation import fill_unseen_offsets
+
+    vertices, faces = _grid_mesh(lambda x, y: 0.0 * x, half=10.0, spacing=1.0)
+    linear = vertices @ np.array([[0.1, 0.0, 0.02], [0.0, -0.05, 0.03], [0.0, 0.0, 0.0]]) + 1.0
+    anchored = np.linalg.norm(vertices[:, :2], axis=1) > 4.0  # a hole in the middle
+    start = np.where(anchored[:, None], linear, 0.0)
+    filled = fill_unseen_offsets(vertices, faces, start, anchored)
+    # cotangent Laplacian of a linear function vanishes on a flat mesh: the biharmonic
+    # fill is exact up to the solver's rounding (and the 1e-9 regularising diagonal)
+    assert np.allclose(filled, linear, atol=1e-6)
+    assert np.array_equal(filled[anchored], linear[anchored])
+
+
+def test_surface_refinement_arguments():
+    _, grid = _face(0)
+    vertices, faces, index = _template_from(grid)
+    for bad in (dict(refinement="nearest"), dict(regularisation=0.0), dict(landmark_weight=-1.0),
+                dict(surface_iterations=0), dict(centre_spacing=np.nan)):
+        name = next(iter(bad))
+        with pytest.raises(ValueError, match=name):
+            adapt((vertices, faces), (vertices, faces), index, vertices[index], **bad)

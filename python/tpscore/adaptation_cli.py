@@ -24,7 +24,9 @@ def add_adapt_parser(sub) -> None:
     p.add_argument("--png", metavar="PNG", help="render scan, template and fit side by side")
     p.add_argument("--levels", type=int, default=6, help="largest number of levels (default 6)")
     p.add_argument("--calibration", choices=["similarity", "axes", "none"], default="similarity")
-    p.add_argument("--rho", type=float, default=10.0, help="error coefficient of the global RBF (mm)")
+    p.add_argument("--rho", type=float, default=30.0, help="error coefficient of the global RBF (mm, default 30)")
+    p.add_argument("--refinement", choices=["surface", "interpolate"], default="surface",
+                   help="surface: point-to-plane levels (default); interpolate: the method's ray pairs")
     p.add_argument("--quiet", action="store_true")
 
 
@@ -66,7 +68,8 @@ def adapt_command(args) -> int:
             f"coverage {level.coverage:.2f}")
 
     result = adapt((template_vertices, template_faces), scan, template_landmarks, scan_landmarks,
-                   levels=args.levels, calibration=args.calibration, rho=args.rho, progress=progress)
+                   levels=args.levels, calibration=args.calibration, rho=args.rho,
+                   refinement=args.refinement, progress=progress)
     say(f"kept level {result.best_level}")
     io.write_mesh(args.out, result.vertices, template_faces)
     say(f"wrote {args.out}")

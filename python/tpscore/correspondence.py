@@ -28,6 +28,7 @@ __all__ = [
     "FeatureMesh",
     "ScanTarget",
     "curvature_features",
+    "self_occluded",
     "spread_vertices",
     "triangulate_features",
 ]
@@ -107,6 +108,44 @@ class ScanTarget:
         hit[where] = ok
         points[where[ok]] = rays.points[ok]
         return hit, points
+
+
+    def closest(self, points, normals, *, max_distance: float, min_cos: float = 0.5):
+        """Pair points with their closest scan point (for point-to-plane fitting).
+
+        Parameters
+        ----------
+        points, normals : (m, 3) ndarray
+            Points (mm) and their unit normals.
+        max_distance : float
+            Partners farther than this (mm) are dropped.
+        min_cos : float
+            The scan normal there must be within arccos(min_cos) of the point's normal.
+
+        Returns
+        -------
+        hit : (m,) bool
+            False where the partner is too far, faces elsewhere or lies on a triangle
+            touching the scan's open boundary (the point is beyond the scan or over a
+            hole: its closest point is the rim, not its partner).
+        points : (m, 3) ndarray
+            The closest scan points (NaN where not hit).
+        normals : (m, 3) ndarray
+            The scan's unit normals there (interpolated vertex normals).
+        """
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        m = len(points)
+        if m == 0:
+            return np.zeros(0, dtype=bool), np.zeros((0, 3)), np.zeros((0, 3))
+        closest = self.surface.closest_point(points)
+        corner_normals = self.vertex_normals[self.faces[closest.triangles]]
+        scan_normals = np.einsum("ij,ijk->ik", closest.barycentric, corner_normals)
+        scan_normals /= np.maximum(np.linalg.norm(scan_normals, axis=1, keepdims=True), 1e-12)
+        hit = closest.distances <= max_distance
+        hit &= ~self.rim_faces[closest.triangles]
+        hit &= np.einsum("ij,ij->i", scan_normals, normals) >= min_cos
+        partners = np.where(hit[:, None], closest.points, np.nan)
+        return hit, partners, scan_normals
 
 
 def _plane_axes(view_direction) -> np.ndarray:
@@ -325,3 +364,41 @@ def spread_vertices(vertices, spacing: float, candidates=None) -> np.ndarray:
     first = np.ones(len(order), dtype=bool)
     first[1:] = np.any(sorted_cells[1:] != sorted_cells[:-1], axis=1)
     return np.sort(pool[order[first]]).astype(np.int64)
+
+
+def self_occluded(vertices, faces, view_direction, *, offset: float = 0.3,
+                  max_distance: float = 200.0) -> np.ndarray:
+    """Vertices hidden from a viewer along `view_direction` by the mesh itself.
+
+    A ray from each vertex (lifted by `offset` mm along the view so that it does not
+    hit its own triangles) toward the viewer that meets the mesh means the vertex is
+    behind another part of it: inside a nostril, between the lips, under the nose or
+    the brow. A scanner looking along the same direction cannot have seen it, so such
+    a vertex must not be paired with the scan (a pair would tie it to the surface in
+    front of it).
+
+    Parameters
+    ----------
+    vertices : (n, 3) array_like
+        Mesh vertices (mm).
+    faces : (m, 3) array_like of int
+        Triangles.
+    view_direction : (3,) array_like
+        Direction from the mesh toward the viewer.
+    offset : float
+        Lift of the ray origins (mm).
+    max_distance : float
+        Longest ray (mm).
+
+    Returns
+    -------
+    (n,) bool, True where hidden.
+    """
+    vertices = as_points(vertices, "vertices")
+    faces = as_faces(faces, len(vertices), "faces")
+    view = np.asarray(view_direction, dtype=np.float64).reshape(3)
+    view = view / np.linalg.norm(view)
+    surface = MeshSurface(vertices, faces)
+    rays = surface.intersect_rays(vertices + offset * view, np.broadcast_to(view, vertices.shape),
+                                  max_distance=max_distance)
+    return rays.hit.copy()
