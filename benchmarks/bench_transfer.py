@@ -41,6 +41,12 @@ def test_transfer_thesis_method(benchmark, scan_files):
     assert np.nanmax(np.linalg.norm(result.vertices - result.neutral, axis=2)) > 1.0
 
 
+@pytest.mark.benchmark(group="transfer: 3 scans from files to the animated target")
+def test_transfer_landmark_model(benchmark, scan_files):
+    result = benchmark(_transfer_from_files, scan_files, tpscore.TransferOptions.landmark_model())
+    assert np.nanmax(np.linalg.norm(result.vertices - result.neutral, axis=2)) > 1.0
+
+
 @pytest.fixture(scope="module")
 def transfer_result(scan_files):
     return _transfer_from_files(scan_files, tpscore.TransferOptions())
