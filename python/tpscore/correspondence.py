@@ -28,6 +28,8 @@ __all__ = [
     "FeatureMesh",
     "ScanTarget",
     "curvature_features",
+    "match_shape_features",
+    "shape_descriptor",
     "self_occluded",
     "spread_vertices",
     "triangulate_features",
@@ -402,3 +404,127 @@ def self_occluded(vertices, faces, view_direction, *, offset: float = 0.3,
     rays = surface.intersect_rays(vertices + offset * view, np.broadcast_to(view, vertices.shape),
                                   max_distance=max_distance)
     return rays.hit.copy()
+
+
+def shape_descriptor(points, normals, sample_points, sample_areas, radii) -> np.ndarray:
+    """How far the surface around each point bends away from its tangent plane, per scale.
+
+    For each point x with unit normal n and each radius r, the area-weighted mean of
+    ``(p_j - x) . n / r^2`` over the surface samples p_j within r (Wendland weights,
+    so the value changes smoothly as x moves). On a sphere of radius R it is
+    proportional to -1/R (-1/(4R) with uniform weights over the disc): a mean
+    curvature measured at scale r, negative on a bump (the surface falls away from the tangent plane), positive
+    in a valley, near zero on flat ground and along a saddle. Averaging hundreds of
+    samples makes it robust to scan noise, where the one-ring curvature is not
+    (0.15 mm of depth noise on 1 mm spacing gives |H| near 1/mm).
+
+    Parameters
+    ----------
+    points, normals : (m, 3) ndarray
+        Where to evaluate (mm) and the unit normals there.
+    sample_points : (s, 3) ndarray
+        Points on the surface (mm), e.g. its vertices.
+    sample_areas : (s,) ndarray
+        The area each sample stands for (mm^2), e.g. Voronoi areas.
+    radii : sequence of float
+        Scales r (mm).
+
+    Returns
+    -------
+    (m, len(radii)) ndarray, 1/mm; NaN where no sample lies within r.
+    """
+    from .csrbf import wendland
+    from .spatial import KDTree
+
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    normals = np.ascontiguousarray(normals, dtype=np.float64)
+    out = np.full((len(points), len(radii)), np.nan)
+    if len(points) == 0:
+        return out
+    tree = KDTree(np.ascontiguousarray(sample_points, dtype=np.float64))
+    for k, radius in enumerate(radii):
+        offsets, indices, distances = tree.query_radius_csr(points, float(radius))
+        counts = np.diff(offsets)
+        rows = np.repeat(np.arange(len(points)), counts)
+        weights = wendland(distances / radius) * sample_areas[indices]
+        heights = np.einsum("ij,ij->i", sample_points[indices] - points[rows], normals[rows])
+        total = np.bincount(rows, weights, minlength=len(points))
+        value = np.bincount(rows, weights * heights, minlength=len(points))
+        good = total > 0
+        out[good, k] = value[good] / total[good] / radius**2
+    return out
+
+
+def match_shape_features(template_descriptors, partners, partner_normals, scan_points, scan_descriptors, *,
+                         radius: float, scale: np.ndarray, temperature: float = 1.0):
+    """Slide closest-point partners to the scan point whose shape matches best.
+
+    Closest points are blind to sliding: a template ridge that sits 1.5 mm beside
+    the scan's ridge pairs with the flank. Each partner q_i is replaced by the
+    soft-min over the scan samples within `radius` of q_i of the cost
+    ``sum_k ((d_ik - s_jk) / scale_k)^2 + |p_j - q_i|^2 / radius^2`` (descriptor
+    mismatch plus a pull toward q_i), projected back onto q_i's tangent plane so that
+    only the sliding changes.
+
+    Parameters
+    ----------
+    template_descriptors : (m, k) ndarray
+        The template's :func:`shape_descriptor` at the paired points.
+    partners, partner_normals : (m, 3) ndarray
+        Closest scan points q_i (mm) and the unit scan normals there.
+    scan_points : (s, 3) ndarray
+        Scan samples (mm).
+    scan_descriptors : (s, k) ndarray
+        Their descriptors (NaN rows are skipped).
+    radius : float
+        Search radius (mm).
+    scale : (k,) ndarray
+        Descriptor differences counted as one unit of cost, per scale.
+    temperature : float
+        Soft-min temperature, in cost units.
+
+    Returns
+    -------
+    targets : (m, 3) ndarray
+        The matched points (q_i where nothing was found).
+    confidence : (m,) ndarray
+        In [0, 1]: how much sharper the best match is than the cost at q_i itself
+        (0 where the shape does not single out a point, e.g. on flat ground).
+    """
+    from .spatial import KDTree
+
+    m = len(partners)
+    targets = np.array(partners, dtype=np.float64, copy=True)
+    confidence = np.zeros(m)
+    if m == 0:
+        return targets, confidence
+    usable = np.isfinite(scan_descriptors).all(axis=1)
+    pool = np.flatnonzero(usable)
+    tree = KDTree(np.ascontiguousarray(scan_points[pool]))
+    offsets, indices, distances = tree.query_radius_csr(np.ascontiguousarray(partners), float(radius))
+    counts = np.diff(offsets)
+    rows = np.repeat(np.arange(m), counts)
+    candidates = pool[indices]
+    mismatch = np.sum(((template_descriptors[rows] - scan_descriptors[candidates]) / scale) ** 2, axis=1)
+    cost = mismatch + (distances / radius) ** 2
+    cost = np.where(np.isfinite(cost), cost, np.inf)
+    # Soft-min per row: subtract each row's minimum before exponentiating.
+    minimum = np.full(m, np.inf)
+    np.minimum.at(minimum, rows, cost)
+    weights = np.exp(-(cost - minimum[rows]) / temperature)
+    weights[~np.isfinite(weights)] = 0.0
+    total = np.bincount(rows, weights, minlength=m)
+    found = total > 0
+    centroid = np.zeros((m, 3))
+    for a in range(3):
+        centroid[:, a] = np.bincount(rows, weights * scan_points[candidates, a], minlength=m)
+    centroid[found] /= total[found, None]
+    shift = centroid - partners
+    shift -= np.einsum("ij,ij->i", shift, partner_normals)[:, None] * partner_normals
+    targets[found] = partners[found] + shift[found]
+    # Cost of staying at q_i (its mismatch, from the nearest candidate) against the best.
+    nearest = np.full(m, np.inf)
+    np.minimum.at(nearest, rows, np.where(distances < 0.5 * radius, mismatch, np.inf))
+    gain = np.where(np.isfinite(nearest), nearest - minimum, 0.0)
+    confidence[found] = 1.0 - np.exp(-np.maximum(gain[found], 0.0))
+    return targets, confidence
