@@ -196,6 +196,16 @@ def _adapt_faces(scan_kwargs=None, landmarks=None, **options):
     return result, [str(w.message) for w in caught if issubclass(w.category, AdaptationWarning)], scan
 
 
+def _scan_distance(result):
+    """Median distance (mm) of the fitted vertices to the scan of :func:`_adapt_faces`."""
+    from tpscore.spatial import MeshSurface
+
+    _, scan_grid = _face(11)
+    scan = scan_grid.mesh()
+
+    return float(np.median(MeshSurface(scan.vertices, scan.faces).closest_point(result.vertices).distances))
+
+
 def test_adapt_faces_improves_on_landmark_rbf():
     result, _, _ = _adapt_faces(levels=5, stop_at_minimum=False)
     errors = [lv.distance_error for lv in result.levels]
@@ -208,6 +218,11 @@ def test_adapt_faces_improves_on_landmark_rbf():
     errors = [lv.distance_error for lv in interpolated.levels]
     assert min(errors[1:]) < 0.7 * errors[0]
     assert set(interpolated.correspondences.source) >= {"landmark", "feature-mesh"}
+    # the snap (default) lands the visible vertices on the scan's tangent planes: the fit
+    # ends closer to the scan than without it
+    unsnapped, _, _ = _adapt_faces(levels=5, stop_at_minimum=False, snap=False)
+    assert _scan_distance(result) < 0.8 * _scan_distance(unsnapped), (_scan_distance(result),
+                                                                     _scan_distance(unsnapped))
     matched, _, _ = _adapt_faces(levels=5, stop_at_minimum=False, shape_match_weight=0.3)
     errors = [lv.distance_error for lv in matched.levels]
     assert min(errors[1:]) < 0.7 * errors[0]

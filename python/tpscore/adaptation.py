@@ -19,9 +19,10 @@ the scan's shape -- and the error figures of each level:
    while the pairs are few and a CSRBF after;
 4. after each level the distance error Ed, the marker error Em and E = alpha Ed +
    beta Em; the levels stop when E stops decreasing and the best level is returned;
-5. with the surface refinement, template vertices the scan never showed (nostrils,
-   inner lips) take the biharmonic fill, along the template mesh, of the paired
-   vertices' displacements.
+5. with the surface refinement, the visible vertices are snapped along their normals
+   onto the scan's tangent planes, and template vertices the scan never showed
+   (nostrils, inner lips) take the harmonic fill, along the template mesh, of the
+   paired vertices' displacements.
 
 Defective data: noisy scans (rho and the CSRBF smoothing), missing feature points
 (the curvature search and the feature mesh fill in), holes (rays that miss make no
@@ -476,6 +477,7 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
           shape_match_weight: float = 0.0, shape_match_radius: float = 3.0, shape_radii=(5.0, 10.0),
           shape_scale: float = 1.0, fill_blend: float = 1.0, fill_order: int = 1, fill_margin: int = 0,
           fill_cotangent: bool = True, fill_base: str = "none", incidence_power: float = 0.0,
+          snap: bool = True, snap_rings: int = 1,
           progress: Callable[[AdaptLevel], None] | None = None) -> AdaptResult:
     """Fit a template mesh to a scan with a global RBF and multilevel CSRBF.
 
@@ -607,6 +609,17 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
     incidence_power : float
         Weight each surface pair by (scan normal . view direction) ** this (0: all
         pairs equal, default; 1 measured 1.17 mm against 1.14 mm).
+    snap : bool
+        After a ``"surface"`` fit (before the fill), move every visible paired vertex
+        along its normal by its (smoothed) distance to the scan's tangent plane at
+        its closest point. The CSRBF levels stop at a support of a tenth of the
+        width and leave fine relief (lip and alar creases, eyelids) a few tenths of
+        a millimetre short; the snap closes that gap vertex by vertex (1.132 ->
+        1.109 mm on the tuning subjects) without the seconds a third level costs.
+        It moves nothing sideways. The vertices it moves are the fill's anchors.
+    snap_rings : int
+        One-ring averages of the snap distances over the paired neighbours, against
+        scan noise (0 measured 1.105 mm, 1 1.109 mm, 3 1.114 mm).
     shape_match_weight : float
         Weight (in surface pairs, scaled by the match's confidence) of point-to-point
         terms that slide each closest-point partner to the nearby scan point whose
@@ -657,6 +670,8 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
         raise ValueError(f"fill_order must be 1 or 2, got {fill_order!r}")
     if not 0.0 <= fill_blend <= 1.0:
         raise ValueError(f"fill_blend must be in [0, 1], got {fill_blend!r}")
+    if int(snap_rings) != snap_rings or snap_rings < 0:
+        raise ValueError(f"snap_rings must be an integer >= 0, got {snap_rings!r}")
     if int(fill_margin) != fill_margin or fill_margin < 0:
         raise ValueError(f"fill_margin must be an integer >= 0, got {fill_margin!r}")
     if refinement not in ("surface", "interpolate"):
@@ -949,6 +964,35 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
 
     _, best_level, fields, deformed, (pt, ps, src) = best
     deformed = deformed.copy()
+    if snap and best_level > 0 and refinement == "surface":
+        import scipy.sparse as sparse
+
+        # Move the paired vertices the rest of the way to the scan along its normals.
+        snap_normals = vertex_normals(deformed, template_faces)
+        rows = np.arange(n_vertices)
+        if view is not None:
+            rows = rows[(snap_normals @ view >= 0.2) & ~self_occluded(deformed, template_faces, view)]
+        hit, partners, partner_normals = target.closest(deformed[rows], snap_normals[rows], max_distance=max_ray)
+        rows, partners, partner_normals = rows[hit], partners[hit], partner_normals[hit]
+        gap = np.zeros(n_vertices)
+        gap[rows] = np.einsum("ij,ij->i", partner_normals, partners - deformed[rows])
+        counted = np.zeros(n_vertices)
+        counted[rows] = 1.0
+        edges = np.concatenate([template_faces[:, [0, 1]], template_faces[:, [1, 2]], template_faces[:, [2, 0]]])
+        ring = sparse.coo_matrix((np.ones(2 * len(edges)), (np.r_[edges[:, 0], edges[:, 1]],
+                                                         np.r_[edges[:, 1], edges[:, 0]])),
+                             shape=(n_vertices, n_vertices)).tocsr()
+        ring.data[:] = 1.0
+        ring = ring + sparse.identity(n_vertices, format="csr")
+        smooth = gap
+        for _ in range(int(snap_rings)):
+            # Average over the paired one-ring neighbours: the scan's noise (0.15 mm on the
+            # benchmark) would otherwise go straight into the fit.
+            smooth = (ring @ (smooth * counted)) / np.maximum(ring @ counted, 1.0)
+        moved = np.zeros(n_vertices, dtype=bool)
+        moved[rows] = True
+        deformed[moved] += smooth[moved, None] * snap_normals[moved]
+        best_anchors = rows
     if fill_unseen and best_level > 0 and refinement == "surface":
         # The whole displacement is filled, not only the refinement offsets: level 0's
         # field over 3D space carries the same fault (a nostril takes the upper lip's
