@@ -67,10 +67,13 @@ VARIANTS = {
     "interpolate: global RBF only": dict(refinement="interpolate", rho=10.0, dense_threshold=10**9, levels=4),
     "interpolate: CSRBF only": dict(refinement="interpolate", rho=10.0, dense_threshold=0),
     "interpolate: multilevel (previous defaults)": dict(refinement="interpolate", rho=10.0),
-    "surface, no fill of unseen vertices": dict(fill_unseen=False),
-    "surface + fill (defaults)": dict(),
+    "surface, biharmonic fill, lambda 10 (round-2 defaults)": dict(regularisation=10.0, fill_order=2, snap=False),
+    "surface, no snap, no fill": dict(snap=False, fill_unseen=False),
+    "surface + harmonic fill, no snap": dict(snap=False),
+    "surface + shape matching 0.3 + snap + fill": dict(shape_match_weight=0.3),
+    "surface + snap + harmonic fill (defaults)": dict(),
 }
-DEFAULT = "surface + fill (defaults)"
+DEFAULT = "surface + snap + harmonic fill (defaults)"
 
 
 def test_adaptation_table():
@@ -119,8 +122,11 @@ def test_adaptation_table():
                     mark = " *" if lv.level == result.best_level else ""
                     lines.append(f"| {lv.level}{mark} | {lv.method} | {lv.support:.1f} | {lv.pairs} | "
                                  f"{lv.distance_error:.2f} | {lv.marker_error:.2f} | {rms:.2f} | {lv.seconds:.3f} |")
-                lines += [f"Returned (level {result.best_level}" + (", then the fill of unseen vertices"
-                          if options.get("fill_unseen", True) and "refinement" not in options else "")
+                surface = "refinement" not in options and result.best_level > 0
+                lines += [f"Returned (level {result.best_level}"
+                          + (", then the snap onto the scan" if surface and options.get("snap", True) else "")
+                          + (", then the fill of unseen vertices" if surface and options.get("fill_unseen", True)
+                             else "")
                           + f"): true RMS {final:.2f} mm.", ""]
             assert np.isfinite(final)
 
