@@ -590,7 +590,8 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
         nostrils, between the lips, under the nose; or over holes) by the
         biharmonic interpolation along the template mesh of the paired vertices'
         displacements (:func:`fill_unseen_offsets`). :meth:`AdaptResult.deform` does
-        not include this step (it is defined on the mesh, not in space).
+        not include this step nor the snap (both are defined on the mesh, not in
+        space).
     fill_order : {1, 2}
         Harmonic (1, default) or biharmonic (2) fill. On the tuning subjects the
         harmonic fill measured 1.14 mm against 1.17 mm: the biharmonic one carries
