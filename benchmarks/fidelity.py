@@ -76,6 +76,9 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", nargs="+", default=["noop", "thesis", "default"],
                     help="noop, thesis, default, or an ablation (see the variants table "
                          "in the code): landmark-model, dense-control-points, adapt-field, ...")
+    ap.add_argument("--motion-variants", nargs="*", default=[],
+                    help="extra variants NAME=key:value,... changing the default's MotionOptions "
+                         "(e.g. shape4=shape_weight:4.0); list NAME under --variants too")
     ap.add_argument("--out", default=str(ROOT / "bench-output"))
     args = ap.parse_args(argv)
 
@@ -112,6 +115,12 @@ def main(argv=None) -> int:
         "adapt-field": replace(default, motion="adapt"),
         "default": default,
     }
+    # registration settings from the command line: name=key:value,key:value
+    for spec in args.motion_variants:
+        name, _, settings = spec.partition("=")
+        changes = {k: float(v) if "." in v or "e" in v else int(v)
+                   for k, v in (item.split(":") for item in settings.split(",") if item)}
+        variants[name] = replace(default, motion_options=replace(default.motion_options, **changes))
     for name in args.variants:
         if name not in variants and name != "noop":
             raise SystemExit(f"unknown variant {name!r}")
