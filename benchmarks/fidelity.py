@@ -118,7 +118,7 @@ def main(argv=None) -> int:
     # registration settings from the command line: name=key:value,key:value
     for spec in args.motion_variants:
         name, _, settings = spec.partition("=")
-        changes = {k: float(v) if "." in v or "e" in v else int(v)
+        changes = {k: (v == "true") if v in ("true", "false") else float(v) if "." in v or "e" in v else int(v)
                    for k, v in (item.split(":") for item in settings.split(",") if item)}
         variants[name] = replace(default, motion_options=replace(default.motion_options, **changes))
     for name in args.variants:

@@ -21,7 +21,10 @@ field u(x, y) (the faces look toward +z, so a field over the x-y plane covers th
   do not pull;
 * **landmarks**: each landmark pair pulls its neutral landmark toward the expressive
   one with a weight that reflects their labelling noise (a soft constraint, so two
-  noisy landmarks cannot fold the field);
+  noisy landmarks cannot fold the field). Before that, each pair is refined by
+  matching the neutral surface patch around the landmark onto the expressive surface
+  (:func:`refine_landmark_motion`); pairs whose patch fits are far less noisy than the
+  labels and pull harder, the others keep their labelled motion and weight;
 * **smoothness**: the thin-plate bending energy of the field on the lattice (second
   differences), with a stiffness that decreases over the iterations, so the field
   first follows the large motions and then the fine ones.
@@ -61,6 +64,10 @@ class MotionOptions:
         Weight of a landmark pair relative to one data point.
     tangential_weight : float
         Weight of the point-to-point pull relative to the point-to-plane pull.
+    tangential_decay : bool
+        Let the point-to-point pull decrease with the stiffness: it steadies the first,
+        stiff iterations, but it also pulls every point toward no slide along the
+        surface, which the later iterations should leave to the landmarks.
     tukey_factor : float
         Pairs farther than this many times the robust scale get weight 0.
     min_scale_mm : float
@@ -81,10 +88,11 @@ class MotionOptions:
     refined_landmark_weight : float
         Weight of a refined landmark pair (its patch fitted within ``refine_max_rms_mm``)
         relative to one data point; pairs whose patch did not fit keep
-        ``landmark_weight``.
+        ``landmark_weight`` and their labelled motion.
     refine_max_rms_mm : float
-        A refined pair counts as fitted when the rms distance of its patch to the
-        expressive surface is below this.
+        A refined pair is trusted fully when the rms distance of its patch to the
+        expressive surface is below this, and not at all beyond twice it (a linear
+        blend of refined and labelled pair, and of their weights, in between).
     membrane_weight : float
         Weight of the membrane (stretching) energy of the field over the neutral
         surface, per data point (0 = off): the linearised change of the surface's
@@ -95,17 +103,18 @@ class MotionOptions:
 
     spacing_mm: float = 8.0
     sample_step: int = 2
-    iterations: int = 6
+    iterations: int = 10
     stiffness_start: float = 100.0
     stiffness_end: float = 1.0
     landmark_weight: float = 3.0
-    tangential_weight: float = 0.05
+    tangential_weight: float = 0.02
+    tangential_decay: bool = False
     tukey_factor: float = 3.0
     min_scale_mm: float = 0.5
     shape_weight: float = 0.0
     shape_sigma_mm: float = 2.5
     membrane_weight: float = 0.0
-    refine_radius_mm: float = 0.0
+    refine_radius_mm: float = 10.0
     refined_landmark_weight: float = 10.0
     refine_max_rms_mm: float = 0.35
 
@@ -376,6 +385,11 @@ def _membrane_energy(lattice: BSplineLattice, points: np.ndarray, mask: np.ndarr
     return energy.tocsr()
 
 
+# Ridge of the patch fit per patch point (a unit normal gives 1 per point along it):
+# directions in which the patch has less shape than this keep the labelled motion.
+_REFINE_RIDGE = 0.03
+
+
 def refine_landmark_motion(neutral_points, neutral_mask, neutral_landmarks, expressive_surface: MeshSurface,
                            expressive_landmarks, radius_mm: float = 10.0, iterations: int = 8):
     """Refine each landmark pair by matching the neutral surface around it onto the
@@ -437,7 +451,7 @@ def refine_landmark_motion(neutral_points, neutral_mask, neutral_landmarks, expr
         np.add.at(rhs, owner, (w * along)[:, None] * normals)
         counts = np.maximum(np.bincount(owner, minlength=len(index)), 1)
         # a small ridge (per point) keeps directions the patch does not pin down
-        matrix += 1e-3 * counts[:, None, None] * np.eye(3)
+        matrix += _REFINE_RIDGE * counts[:, None, None] * np.eye(3)
         shift = shift + np.linalg.solve(matrix, rhs[..., None])[..., 0]
     closest = expressive_surface.closest_point(patch_points + shift[owner])
     sq = np.bincount(owner, weights=closest.distances ** 2, minlength=len(index))
@@ -496,9 +510,14 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     if options.refine_radius_mm > 0:
         refined, fit_rms = refine_landmark_motion(points, mask, lm_from, expressive_surface, lm_to,
                                                   options.refine_radius_mm)
-        good = np.isfinite(fit_rms) & (fit_rms < options.refine_max_rms_mm)
-        lm_to = np.where(good[:, None], refined, lm_to)
-        lm_weight = np.where(good[both], options.refined_landmark_weight, options.landmark_weight)
+        # trust in a refined pair: 1 up to refine_max_rms_mm, fading to 0 at twice it
+        # (a smooth fade, so that a small change of pose cannot flip a pair)
+        trust = np.clip(2.0 - fit_rms / options.refine_max_rms_mm, 0.0, 1.0)
+        trust = np.where(np.isfinite(trust), trust, 0.0)
+        lm_to = np.where(trust[:, None] > 0, trust[:, None] * np.nan_to_num(refined)
+                         + (1.0 - trust[:, None]) * lm_to, lm_to)
+        lm_weight = (trust * options.refined_landmark_weight
+                     + (1.0 - trust) * options.landmark_weight)[both]
     lm_basis = lattice.basis(lm_from[both, :2])
     lm_target = lm_to[both] - lm_from[both]
     lm_normal = lm_basis.T @ lm_basis.multiply(lm_weight[:, None])
@@ -547,10 +566,11 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         weighted_plane = plane_rows.multiply(w[:, None]).tocsr()
         target_plane = np.einsum("ij,ij->i", closest.points - sample, normals)
         point_normal = basis.T @ basis.multiply(w[:, None])
-        block = alpha * bending + options.tangential_weight * point_normal + lm_normal + ridge
+        pull = options.tangential_weight * (alpha / stiffness[0] if options.tangential_decay else 1.0)
+        block = alpha * bending + pull * point_normal + lm_normal + ridge
         matrix = (plane_rows.T @ weighted_plane) + sp.block_diag([block] * 3) + membrane
         rhs = plane_rows.T @ (w * target_plane)
-        point_rhs = basis.T @ ((closest.points - sample) * (options.tangential_weight * w)[:, None])
+        point_rhs = basis.T @ ((closest.points - sample) * (pull * w)[:, None])
         lm_rhs = lm_basis.T @ (lm_target * lm_weight[:, None])
         rhs = rhs + (point_rhs + lm_rhs).T.ravel()
         if use_shape:
