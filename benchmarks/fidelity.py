@@ -114,6 +114,15 @@ def main(argv=None) -> int:
         "default-fade-small": replace(default, still_motion_mm=0.5),
         "adapt-field": replace(default, motion="adapt"),
         "default": default,
+        # the registration's choices, each undone or added on its own
+        "default-raw-landmarks": replace(default, motion_options=replace(
+            default.motion_options, refine_radius_mm=0.0)),
+        "default-shape-term": replace(default, motion_options=replace(
+            default.motion_options, shape_weight=1.0)),
+        "default-membrane": replace(default, motion_options=replace(
+            default.motion_options, membrane_weight=10.0)),
+        "registration-round-1": replace(default, motion_options=replace(
+            default.motion_options, refine_radius_mm=0.0, iterations=6, tangential_weight=0.05)),
     }
     # registration settings from the command line: name=key:value,key:value
     for spec in args.motion_variants:
