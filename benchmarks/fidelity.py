@@ -76,6 +76,9 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", nargs="+", default=["noop", "thesis", "default"],
                     help="noop, thesis, default, or an ablation (see the variants table "
                          "in the code): landmark-model, dense-control-points, adapt-field, ...")
+    ap.add_argument("--motion-variants", nargs="*", default=[],
+                    help="extra variants NAME=key:value,... changing the default's MotionOptions "
+                         "(e.g. shape4=shape_weight:4.0); list NAME under --variants too")
     ap.add_argument("--out", default=str(ROOT / "bench-output"))
     args = ap.parse_args(argv)
 
@@ -111,7 +114,22 @@ def main(argv=None) -> int:
         "default-fade-small": replace(default, still_motion_mm=0.5),
         "adapt-field": replace(default, motion="adapt"),
         "default": default,
+        # the registration's choices, each undone or added on its own
+        "default-raw-landmarks": replace(default, motion_options=replace(
+            default.motion_options, refine_radius_mm=0.0)),
+        "default-shape-term": replace(default, motion_options=replace(
+            default.motion_options, shape_weight=1.0)),
+        "default-membrane": replace(default, motion_options=replace(
+            default.motion_options, membrane_weight=10.0)),
+        "registration-round-1": replace(default, motion_options=replace(
+            default.motion_options, refine_radius_mm=0.0, iterations=6, tangential_weight=0.05)),
     }
+    # registration settings from the command line: name=key:value,key:value
+    for spec in args.motion_variants:
+        name, _, settings = spec.partition("=")
+        changes = {k: (v == "true") if v in ("true", "false") else float(v) if "." in v or "e" in v else int(v)
+                   for k, v in (item.split(":") for item in settings.split(",") if item)}
+        variants[name] = replace(default, motion_options=replace(default.motion_options, **changes))
     for name in args.variants:
         if name not in variants and name != "noop":
             raise SystemExit(f"unknown variant {name!r}")

@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 from tpscore import datasets
-from tpscore.motion import BSplineLattice, MotionOptions, register_surfaces
+from tpscore.motion import (BSplineLattice, MotionOptions, curvature_image, face_gradients,
+                           refine_landmark_motion, register_surfaces)
 from tpscore.preprocess import FaceGrid, resample_scan
 from tpscore.spatial import MeshSurface
 
@@ -62,3 +63,75 @@ def test_registration_recovers_a_smooth_motion(hole):
     still = np.linalg.norm(true, axis=1) < 0.05
     # measured 0.03 mm where nothing moves: the still face stays still
     assert np.sqrt(np.mean(np.sum(found[still] ** 2, axis=1))) < 0.15
+
+
+def test_lattice_derivatives_match_finite_differences():
+    lattice = BSplineLattice([-40.0, -60.0], [45.0, 50.0], 7.0)
+    rng = np.random.default_rng(5)
+    values = rng.normal(size=lattice.n_nodes)
+    xy = rng.uniform([-35, -55], [40, 45], size=(200, 2))
+    h = 1e-5
+    for name, step in (("x", [h, 0.0]), ("y", [0.0, h])):
+        numeric = (lattice.basis(xy + step) @ values - lattice.basis(xy - step) @ values) / (2 * h)
+        # central differences of a C2 cubic: error O(h^2) plus rounding ~1e-16 / h
+        assert np.allclose(lattice.basis(xy, name) @ values, numeric, atol=1e-7)
+    with pytest.raises(ValueError, match="derivative"):
+        lattice.basis(xy, "z")
+
+
+def test_face_gradients_are_exact_for_linear_functions():
+    rng = np.random.default_rng(3)
+    vertices = rng.normal(size=(30, 3)) * 10.0
+    faces = rng.integers(0, 30, size=(40, 3))
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
+    direction = np.array([0.3, -1.2, 0.7])
+    gradient = face_gradients(vertices, faces, vertices @ direction + 4.0)
+    e1 = vertices[faces[:, 1]] - vertices[faces[:, 0]]
+    e2 = vertices[faces[:, 2]] - vertices[faces[:, 0]]
+    normal = np.cross(e1, e2)
+    normal /= np.linalg.norm(normal, axis=1)[:, None]
+    in_plane = direction - np.einsum("ij,j->i", normal, direction)[:, None] * normal
+    # a linear function's gradient on a triangle is its projection onto the plane
+    assert np.allclose(gradient, in_plane, atol=1e-9)
+
+
+def test_curvature_image_of_a_sphere_cap():
+    radius = 60.0
+    y, x = np.mgrid[-30:30.1:1.0, -30:30.1:1.0]
+    z = np.sqrt(radius ** 2 - x ** 2 - y ** 2)
+    points = np.stack([x, y[::-1], z], axis=-1)  # rows run downward in y, as scans do
+    mask = np.ones(x.shape, bool)
+    mask[25:35, 25:35] = False   # a hole
+    curvature = curvature_image(points, mask, sigma_mm=2.0)
+    inner = np.isfinite(curvature)
+    assert inner.sum() > 0.6 * mask.sum()
+    from scipy.ndimage import binary_erosion
+    far = inner & binary_erosion(mask, iterations=6)
+    # the outward (+z) normal of a sphere: H = 1/R; away from the rims (3 sigma) the
+    # smoothing shrinks the cap by (2/60)^2 ~ 0.1 %, the 1 mm grid adds about as much
+    assert np.allclose(np.abs(curvature[far]), 1.0 / radius, rtol=0.02)
+    # near the rims the smoothing leans toward the inside (measured within 30 %)
+    assert np.allclose(np.abs(curvature[inner]), 1.0 / radius, rtol=0.35)
+    assert not np.isfinite(curvature[~mask]).any()
+
+
+def test_landmark_refinement_recovers_a_translation_from_noisy_pairs():
+    scan = datasets.make_face(datasets.random_identity(2), None, seed=3)
+    neutral = resample_scan(scan.points, scan.landmarks)
+    shift = np.array([1.5, -1.0, 0.5])
+    expressive = FaceGrid.from_points(np.where(neutral.mask[..., None], neutral.points + shift, np.nan))
+    mesh = expressive.mesh()
+    surface = MeshSurface(mesh.vertices, mesh.faces)
+    rng = np.random.default_rng(0)
+    labelled = neutral.landmarks + shift + rng.normal(0.0, 0.8, neutral.landmarks.shape)
+    refined, fit_rms = refine_landmark_motion(neutral.points, neutral.mask, neutral.landmarks, surface,
+                                              labelled, radius_mm=10.0)
+    ok = np.isfinite(fit_rms)
+    assert ok.sum() >= 15
+    raw_error = np.linalg.norm(labelled - neutral.landmarks - shift, axis=1)[ok]
+    error = np.linalg.norm(refined - neutral.landmarks - shift, axis=1)[ok]
+    # the labelling noise is ~1.4 mm per landmark; the patches pin the motion down to
+    # a fraction of it where the face has shape (the median over the landmarks), and
+    # a patch whose shape is flat in some direction keeps at most the labelled error
+    assert np.median(error) < 0.35 * np.median(raw_error)
+    assert np.all(error < raw_error + 0.2)

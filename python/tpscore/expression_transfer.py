@@ -42,7 +42,8 @@ from .action_units import ActionUnit, ActionUnitLibrary, Activation, default_lib
 from .alignment import align_rigid
 from .csrbf import CSRBF
 from .landmarks import landmark_index, landmark_map
-from .motion import AdaptedMotion, DenseMotion, MotionOptions, adapt_motion, register_surfaces
+from .motion import (AdaptedMotion, DenseMotion, MotionOptions, adapt_motion, curvature_image,
+                     register_surfaces)
 from .normalise import FrameTransform, landmark_transform
 from .preprocess import FaceGrid
 from .rbf import TPS
@@ -339,9 +340,17 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
     """Register the neutral source onto its expressive scan (both in the reference frame)."""
     if options.motion == "adapt":
         return adapt_motion(source_neutral.grid, source_expressive.grid)
+    motion_options = options.motion_options
+    expressive_curvature = None
+    if motion_options.shape_weight > 0:
+        grid = source_expressive.grid
+        # the surface's vertices are the grid's valid vertices in row-major order
+        expressive_curvature = curvature_image(grid.points, grid.mask, motion_options.shape_sigma_mm
+                                               ).reshape(-1)[np.flatnonzero(grid.mask.ravel())]
     return register_surfaces(source_neutral.grid.points, source_neutral.grid.mask,
                              source_neutral.landmarks, source_expressive.surface(),
-                             source_expressive.landmarks, options.motion_options)
+                             source_expressive.landmarks, motion_options,
+                             expressive_curvature=expressive_curvature)
 
 
 def _fade_small(displacement: np.ndarray, still_mm: float) -> np.ndarray:

@@ -21,7 +21,10 @@ field u(x, y) (the faces look toward +z, so a field over the x-y plane covers th
   do not pull;
 * **landmarks**: each landmark pair pulls its neutral landmark toward the expressive
   one with a weight that reflects their labelling noise (a soft constraint, so two
-  noisy landmarks cannot fold the field);
+  noisy landmarks cannot fold the field). Before that, each pair is refined by
+  matching the neutral surface patch around the landmark onto the expressive surface
+  (:func:`refine_landmark_motion`); pairs whose patch fits are far less noisy than the
+  labels and pull harder, the others keep their labelled motion and weight;
 * **smoothness**: the thin-plate bending energy of the field on the lattice (second
   differences), with a stiffness that decreases over the iterations, so the field
   first follows the large motions and then the fine ones.
@@ -39,7 +42,7 @@ from .sparse import SparseCholesky
 from .spatial import MeshSurface
 
 __all__ = ["MotionOptions", "DenseMotion", "BSplineLattice", "register_surfaces", "AdaptedMotion",
-           "adapt_motion"]
+           "adapt_motion", "curvature_image", "face_gradients", "refine_landmark_motion"]
 
 
 @dataclass(frozen=True)
@@ -61,29 +64,68 @@ class MotionOptions:
         Weight of a landmark pair relative to one data point.
     tangential_weight : float
         Weight of the point-to-point pull relative to the point-to-plane pull.
+    tangential_decay : bool
+        Let the point-to-point pull decrease with the stiffness: it steadies the first,
+        stiff iterations, but it also pulls every point toward no slide along the
+        surface, which the later iterations should leave to the landmarks.
     tukey_factor : float
         Pairs farther than this many times the robust scale get weight 0.
     min_scale_mm : float
         Lower bound of the robust scale (about the scanner noise).
+    shape_weight : float
+        Weight of the shape-matching term (0 = off): each data point pulls along the
+        surface toward where the expressive surface's curvature equals the neutral
+        surface's curvature at that point (the descriptor's gradient direction), so the
+        field follows how features such as the lips, nose wings and brows slide.
+        Relative to a point-to-plane pair, in curvature units of one robust standard
+        deviation of the neutral curvature image.
+    shape_sigma_mm : float
+        Gaussian smoothing of the surfaces before their curvature is taken (mm).
+    refine_radius_mm : float
+        Radius of the neutral surface patch around each neutral landmark that is
+        matched onto the expressive surface to refine the landmark pair (0 = raw pairs,
+        see :func:`refine_landmark_motion`).
+    refined_landmark_weight : float
+        Weight of a refined landmark pair (its patch fitted within ``refine_max_rms_mm``)
+        relative to one data point; pairs whose patch did not fit keep
+        ``landmark_weight`` and their labelled motion.
+    refine_max_rms_mm : float
+        A refined pair is trusted fully when the rms distance of its patch to the
+        expressive surface is below this, and not at all beyond twice it (a linear
+        blend of refined and labelled pair, and of their weights, in between).
+    membrane_weight : float
+        Weight of the membrane (stretching) energy of the field over the neutral
+        surface, per data point (0 = off): the linearised change of the surface's
+        metric, so that where the surface bulges or sinks (which the data measure) the
+        skin slides along it as an inextensible sheet would, rather than only as smooth
+        as the bending energy allows. Rigid motions cost nothing.
     """
 
     spacing_mm: float = 8.0
     sample_step: int = 2
-    iterations: int = 6
+    iterations: int = 10
     stiffness_start: float = 100.0
     stiffness_end: float = 1.0
     landmark_weight: float = 3.0
-    tangential_weight: float = 0.05
+    tangential_weight: float = 0.02
+    tangential_decay: bool = False
     tukey_factor: float = 3.0
     min_scale_mm: float = 0.5
+    shape_weight: float = 0.0
+    shape_sigma_mm: float = 2.5
+    membrane_weight: float = 0.0
+    refine_radius_mm: float = 10.0
+    refined_landmark_weight: float = 10.0
+    refine_max_rms_mm: float = 0.35
 
     def __post_init__(self):
         for name in ("spacing_mm", "stiffness_start", "stiffness_end", "tukey_factor",
-                     "min_scale_mm"):
+                     "min_scale_mm", "shape_sigma_mm"):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:
                 raise ValueError(f"{name} must be finite and > 0, got {value!r}")
-        for name in ("landmark_weight", "tangential_weight"):
+        for name in ("landmark_weight", "tangential_weight", "shape_weight", "membrane_weight",
+                     "refine_radius_mm", "refined_landmark_weight", "refine_max_rms_mm"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:
                 raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
@@ -98,6 +140,13 @@ def _cubic_bspline_weights(t: np.ndarray) -> np.ndarray:
     s = 1.0 - t
     return np.stack([s ** 3, 3 * t ** 3 - 6 * t ** 2 + 4, -3 * t ** 3 + 3 * t ** 2 + 3 * t + 1,
                      t ** 3], axis=1) / 6.0
+
+
+def _cubic_bspline_derivatives(t: np.ndarray) -> np.ndarray:
+    """(n, 4) derivatives d/dt of :func:`_cubic_bspline_weights`."""
+    s = 1.0 - t
+    return np.stack([-0.5 * s ** 2, 1.5 * t ** 2 - 2.0 * t, -1.5 * t ** 2 + t + 0.5, 0.5 * t ** 2],
+                    axis=1)
 
 
 class BSplineLattice:
@@ -124,8 +173,9 @@ class BSplineLattice:
     def n_nodes(self) -> int:
         return self.shape[0] * self.shape[1]
 
-    def basis(self, xy) -> sp.csr_matrix:
-        """(m, n_nodes) sparse matrix: the field at points (m, 2) is basis @ node_values."""
+    def basis(self, xy, derivative: str = "") -> sp.csr_matrix:
+        """(m, n_nodes) sparse matrix: the field at points (m, 2) is basis @ node_values;
+        with ``derivative="x"`` (``"y"``) its derivative along x (y), per mm."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         g = (xy - self.origin) / self.spacing
         cell = np.floor(g).astype(np.int64)
@@ -134,6 +184,12 @@ class BSplineLattice:
         t = np.clip(g - cell, 0.0, 1.0)
         wx = _cubic_bspline_weights(t[:, 0])
         wy = _cubic_bspline_weights(t[:, 1])
+        if derivative == "x":
+            wx = _cubic_bspline_derivatives(t[:, 0]) / self.spacing
+        elif derivative == "y":
+            wy = _cubic_bspline_derivatives(t[:, 1]) / self.spacing
+        elif derivative:
+            raise ValueError(f"derivative must be '', 'x' or 'y', got {derivative!r}")
         offsets = np.arange(-1, 3)
         cols = (cell[:, 1, None, None] + offsets[None, :, None]) * self.shape[1] \
             + (cell[:, 0, None, None] + offsets[None, None, :])
@@ -204,9 +260,211 @@ def _face_normals(surface: MeshSurface) -> np.ndarray:
     return n / np.where(length > 0, length, 1.0)[:, None]
 
 
+def _grid_spacing(points: np.ndarray, mask: np.ndarray) -> float:
+    """Median distance between valid neighbours along the grid rows and columns (mm)."""
+    edges = []
+    for a, b in ((points[:, 1:], points[:, :-1]), (points[1:], points[:-1])):
+        both = np.isfinite(a).all(axis=-1) & np.isfinite(b).all(axis=-1)
+        if a.shape[:2] == mask[:, 1:].shape:
+            both &= mask[:, 1:] & mask[:, :-1]
+        else:
+            both &= mask[1:] & mask[:-1]
+        edges.append(np.linalg.norm(a[both] - b[both], axis=1))
+    edges = np.concatenate(edges)
+    return float(np.median(edges)) if len(edges) else 1.0
+
+
+def curvature_image(points, mask, sigma_mm: float = 2.5) -> np.ndarray:
+    """Mean curvature of a face grid after Gaussian smoothing of its surface.
+
+    The curvature of the skin's features (lips, nose wings, brows, folds) travels with
+    the skin when it slides, so two scans of one person can be matched along their
+    surfaces by it. The grid's points are smoothed first (normalised convolution over
+    the grid's valid vertices, ``sigma_mm`` wide), which removes the scanner noise that
+    a second derivative would amplify.
+
+    Parameters
+    ----------
+    points : (H, W, 3) ndarray
+        Grid points (mm), NaN where invalid.
+    mask : (H, W) bool ndarray
+    sigma_mm : float
+        Smoothing width (mm).
+
+    Returns
+    -------
+    (H, W) ndarray
+        Mean curvature (1/mm), NaN where invalid, on the rim of the grid's holes and
+        outline, and where the smoothing saw mostly invalid vertices.
+    """
+    from scipy.ndimage import gaussian_filter
+
+    from .mesh import mean_curvature
+    from .preprocess import FaceGrid
+
+    points = np.asarray(points, dtype=np.float64)
+    mask = np.asarray(mask, dtype=bool) & np.isfinite(points).all(axis=-1)
+    sigma = float(sigma_mm) / _grid_spacing(points, mask)
+    weight = gaussian_filter(mask.astype(np.float64), sigma, mode="constant")
+    filled = np.where(mask[..., None], points, 0.0)
+    smooth = np.stack([gaussian_filter(filled[..., k], sigma, mode="constant") for k in range(3)],
+                      axis=-1) / np.maximum(weight, 1e-12)[..., None]
+    # near the outline the normalised convolution leans toward one side: keep vertices
+    # whose neighbourhood is mostly valid
+    keep = mask & (weight > 0.6)
+    grid = FaceGrid.from_points(np.where(keep[..., None], smooth, np.nan))
+    mesh = grid.mesh()
+    out = np.full(mask.shape, np.nan)
+    if len(mesh.faces):
+        curvature = mean_curvature(mesh.vertices, mesh.faces).values
+        out.reshape(-1)[mesh.grid_index] = curvature
+    return out
+
+
+def face_gradients(vertices, faces, values) -> np.ndarray:
+    """(m, 3) gradient of a piecewise-linear function on each triangle, in its plane.
+
+    ``values`` (n,) at the vertices; the gradient g of triangle (a, b, c) satisfies
+    g . (b - a) = f_b - f_a, g . (c - a) = f_c - f_a and g . normal = 0 (NaN where a
+    value is NaN or the triangle is degenerate).
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    values = np.asarray(values, dtype=np.float64)
+    e1 = v[f[:, 1]] - v[f[:, 0]]
+    e2 = v[f[:, 2]] - v[f[:, 0]]
+    normal = np.cross(e1, e2)
+    area2 = np.einsum("ij,ij->i", normal, normal)
+    df1 = values[f[:, 1]] - values[f[:, 0]]
+    df2 = values[f[:, 2]] - values[f[:, 0]]
+    # closed form of the 3 x 3 solve: g = (df1 (e2 x n) + df2 (n x e1)) / |n|^2
+    g = (df1[:, None] * np.cross(e2, normal) + df2[:, None] * np.cross(normal, e1))
+    ok = area2 > 1e-12
+    g[ok] /= area2[ok, None]
+    g[~ok] = np.nan
+    return g
+
+
+def _membrane_energy(lattice: BSplineLattice, points: np.ndarray, mask: np.ndarray,
+                     sample_mask: np.ndarray, prior: np.ndarray) -> sp.csr_matrix:
+    """(3 n_nodes, 3 n_nodes) sum over the data points of the squared linearised strain.
+
+    The neutral surface is the height field X(x, y) = (x, y, z(x, y)); moved by the
+    field u its metric changes by dX_i . du_j + dX_j . du_i (i, j in x, y), linear in
+    u. The strain tensor's squared norm (xx, yy and twice xy) is summed over the data
+    points, each weighted like its data pair's prior.
+    """
+    z = np.where(mask, points[..., 2], np.nan)
+    x = np.where(mask, points[..., 0], np.nan)
+    y = np.where(mask, points[..., 1], np.nan)
+    # slopes of the height field from the grid's neighbours (central differences,
+    # one-sided at the rims); NaN slopes (isolated vertices) count as flat
+    slopes = []
+    for axis in (1, 0):
+        dz = np.gradient(z, axis=axis)
+        dx = np.gradient(x, axis=axis)
+        dy = np.gradient(y, axis=axis)
+        slopes.append((dz, dx, dy))
+    (dz_c, dx_c, dy_c), (dz_r, dx_r, dy_r) = slopes
+    # solve [dx_c dy_c; dx_r dy_r] [z_x; z_y] = [dz_c; dz_r]
+    det = dx_c * dy_r - dy_c * dx_r
+    with np.errstate(invalid="ignore", divide="ignore"):
+        zx = (dz_c * dy_r - dy_c * dz_r) / det
+        zy = (dx_c * dz_r - dz_c * dx_r) / det
+    zx = np.nan_to_num(zx[sample_mask], nan=0.0, posinf=0.0, neginf=0.0)
+    zy = np.nan_to_num(zy[sample_mask], nan=0.0, posinf=0.0, neginf=0.0)
+    xy = points[sample_mask][:, :2]
+    bx, by = lattice.basis(xy, "x"), lattice.basis(xy, "y")
+    zero = sp.csr_matrix(bx.shape)
+    # rows over the component blocks [u_x; u_y; u_z]
+    exx = sp.hstack([bx, zero, bx.multiply(zx[:, None])])
+    eyy = sp.hstack([zero, by, by.multiply(zy[:, None])])
+    exy = sp.hstack([by, bx, by.multiply(zx[:, None]) + bx.multiply(zy[:, None])]) * 0.5
+    weight = sp.diags(np.asarray(prior, dtype=np.float64))
+    energy = exx.T @ weight @ exx + eyy.T @ weight @ eyy + 2.0 * (exy.T @ weight @ exy)
+    return energy.tocsr()
+
+
+# Ridge of the patch fit per patch point (a unit normal gives 1 per point along it):
+# directions in which the patch has less shape than this keep the labelled motion.
+_REFINE_RIDGE = 0.03
+
+
+def refine_landmark_motion(neutral_points, neutral_mask, neutral_landmarks, expressive_surface: MeshSurface,
+                           expressive_landmarks, radius_mm: float = 10.0, iterations: int = 8):
+    """Refine each landmark pair by matching the neutral surface around it onto the
+    expressive surface.
+
+    A labelled landmark is off by about a millimetre in each scan, so the motion a pair
+    says (expressive - neutral) is off by more than the motion of the subtle AUs. Around
+    a landmark the face has shape (eye corners, nose, mouth), and over a small patch the
+    motion is nearly a translation: the patch of neutral vertices within ``radius_mm``
+    of the neutral landmark is translated onto the expressive surface by point-to-plane
+    ICP, starting from the labelled motion. Directions the patch's shape does not pin
+    down (a flat brow along the surface) stay near the labelled motion.
+
+    Parameters
+    ----------
+    neutral_points : (H, W, 3) ndarray
+    neutral_mask : (H, W) bool ndarray
+    neutral_landmarks, expressive_landmarks : (22, 3) ndarray
+        In the frame of the expressive surface (NaN rows missing).
+    expressive_surface : MeshSurface
+    radius_mm : float
+    iterations : int
+
+    Returns
+    -------
+    refined : (22, 3) ndarray
+        The neutral landmark's corresponding point on the expressive surface (NaN
+        where either landmark is missing).
+    fit_rms_mm : (22,) ndarray
+        RMS distance of the moved patch to the expressive surface (NaN where not
+        refined); a patch that deforms, or straddles a hole, fits badly.
+    """
+    points = np.asarray(neutral_points, dtype=np.float64)
+    valid = points[np.asarray(neutral_mask, dtype=bool)]
+    lm_from = np.asarray(neutral_landmarks, dtype=np.float64)
+    lm_to = np.asarray(expressive_landmarks, dtype=np.float64)
+    refined = np.full(lm_from.shape, np.nan)
+    fit_rms = np.full(len(lm_from), np.nan)
+    both = np.isfinite(lm_from).all(axis=1) & np.isfinite(lm_to).all(axis=1)
+    if not both.any() or len(valid) == 0:
+        return refined, fit_rms
+    normals_of = _face_normals(expressive_surface)
+    index = np.flatnonzero(both)
+    patches = [valid[np.linalg.norm(valid - lm_from[k], axis=1) < radius_mm] for k in index]
+    owner = np.concatenate([np.full(len(p), i) for i, p in enumerate(patches)])
+    patch_points = np.concatenate(patches) if len(owner) else np.zeros((0, 3))
+    shift = (lm_to - lm_from)[index]
+    for _ in range(iterations):
+        # all patches in one closest-point query; one 3 x 3 solve per patch
+        closest = expressive_surface.closest_point(patch_points + shift[owner])
+        normals = normals_of[closest.triangles]
+        along = np.einsum("ij,ij->i", closest.points - patch_points - shift[owner], normals)
+        rim = np.abs(along) < 0.8 * closest.distances - 0.05
+        w = (~rim).astype(np.float64)
+        outer = np.einsum("i,ij,ik->ijk", w, normals, normals)
+        matrix = np.zeros((len(index), 3, 3))
+        np.add.at(matrix, owner, outer)
+        rhs = np.zeros((len(index), 3))
+        np.add.at(rhs, owner, (w * along)[:, None] * normals)
+        counts = np.maximum(np.bincount(owner, minlength=len(index)), 1)
+        # a small ridge (per point) keeps directions the patch does not pin down
+        matrix += _REFINE_RIDGE * counts[:, None, None] * np.eye(3)
+        shift = shift + np.linalg.solve(matrix, rhs[..., None])[..., 0]
+    closest = expressive_surface.closest_point(patch_points + shift[owner])
+    sq = np.bincount(owner, weights=closest.distances ** 2, minlength=len(index))
+    n = np.bincount(owner, minlength=len(index))
+    fitted = n > 0
+    refined[index[fitted]] = lm_from[index[fitted]] + shift[fitted]
+    fit_rms[index[fitted]] = np.sqrt(sq[fitted] / n[fitted])
+    return refined, fit_rms
+
+
 def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressive_surface: MeshSurface,
                       expressive_landmarks, options: MotionOptions = MotionOptions(),
-                      weight=None) -> DenseMotion:
+                      weight=None, expressive_curvature=None) -> DenseMotion:
     """Register a neutral face grid onto an expressive surface of the same person.
 
     Parameters
@@ -222,6 +480,10 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     weight : (H, W) ndarray, optional
         Extra weight of each neutral vertex as a data point (e.g. 0 where the field is
         known to be still); default 1.
+    expressive_curvature : (n,) ndarray, optional
+        :func:`curvature_image` of the expressive grid at the vertices of
+        ``expressive_surface`` (NaN where unknown), with ``options.shape_sigma_mm``.
+        Needed when ``options.shape_weight > 0``.
 
     Returns
     -------
@@ -244,12 +506,42 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     lm_from = np.asarray(neutral_landmarks, dtype=np.float64)
     lm_to = np.asarray(expressive_landmarks, dtype=np.float64)
     both = np.isfinite(lm_from).all(axis=1) & np.isfinite(lm_to).all(axis=1)
+    lm_weight = np.full(int(both.sum()), options.landmark_weight)
+    if options.refine_radius_mm > 0:
+        refined, fit_rms = refine_landmark_motion(points, mask, lm_from, expressive_surface, lm_to,
+                                                  options.refine_radius_mm)
+        # trust in a refined pair: 1 up to refine_max_rms_mm, fading to 0 at twice it
+        # (a smooth fade, so that a small change of pose cannot flip a pair)
+        trust = np.clip(2.0 - fit_rms / options.refine_max_rms_mm, 0.0, 1.0)
+        trust = np.where(np.isfinite(trust), trust, 0.0)
+        lm_to = np.where(trust[:, None] > 0, trust[:, None] * np.nan_to_num(refined)
+                         + (1.0 - trust[:, None]) * lm_to, lm_to)
+        lm_weight = (trust * options.refined_landmark_weight
+                     + (1.0 - trust) * options.landmark_weight)[both]
     lm_basis = lattice.basis(lm_from[both, :2])
     lm_target = lm_to[both] - lm_from[both]
-    lm_scale = options.landmark_weight
-    lm_normal = lm_scale * (lm_basis.T @ lm_basis)
+    lm_normal = lm_basis.T @ lm_basis.multiply(lm_weight[:, None])
 
     normals_of = _face_normals(expressive_surface)
+    membrane = sp.csr_matrix((3 * n_nodes, 3 * n_nodes))
+    if options.membrane_weight > 0:
+        membrane = options.membrane_weight * _membrane_energy(lattice, points, mask, sample_mask, prior)
+    use_shape = options.shape_weight > 0
+    if use_shape:
+        if expressive_curvature is None:
+            raise ValueError("expressive_curvature is needed when options.shape_weight > 0")
+        expressive_curvature = np.asarray(expressive_curvature, dtype=np.float64)
+        if expressive_curvature.shape != (len(expressive_surface.vertices),):
+            raise ValueError(f"expressive_curvature must have shape ({len(expressive_surface.vertices)},), "
+                             f"got {expressive_curvature.shape}")
+        neutral_curvature = curvature_image(points, mask, options.shape_sigma_mm)[sample_mask]
+        known = neutral_curvature[np.isfinite(neutral_curvature)]
+        # one robust standard deviation of the curvature image is the unit of the term
+        unit = 1.4826 * float(np.median(np.abs(known - np.median(known)))) if len(known) else 1.0
+        unit = unit if unit > 0 else 1.0
+        shape_of = expressive_curvature / unit
+        neutral_shape = neutral_curvature / unit
+        gradient_of = face_gradients(expressive_surface.vertices, expressive_surface.faces, shape_of)
     values = np.zeros((n_nodes, 3))
     ridge = 1e-8 * sp.identity(n_nodes, format="csr")
     stiffness = np.geomspace(options.stiffness_start, options.stiffness_end, options.iterations)
@@ -274,12 +566,33 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         weighted_plane = plane_rows.multiply(w[:, None]).tocsr()
         target_plane = np.einsum("ij,ij->i", closest.points - sample, normals)
         point_normal = basis.T @ basis.multiply(w[:, None])
-        block = alpha * bending + options.tangential_weight * point_normal + lm_normal + ridge
-        matrix = (plane_rows.T @ weighted_plane) + sp.block_diag([block] * 3)
+        pull = options.tangential_weight * (alpha / stiffness[0] if options.tangential_decay else 1.0)
+        block = alpha * bending + pull * point_normal + lm_normal + ridge
+        matrix = (plane_rows.T @ weighted_plane) + sp.block_diag([block] * 3) + membrane
         rhs = plane_rows.T @ (w * target_plane)
-        point_rhs = basis.T @ ((closest.points - sample) * (options.tangential_weight * w)[:, None])
-        lm_rhs = lm_scale * (lm_basis.T @ lm_target)
+        point_rhs = basis.T @ ((closest.points - sample) * (pull * w)[:, None])
+        lm_rhs = lm_basis.T @ (lm_target * lm_weight[:, None])
         rhs = rhs + (point_rhs + lm_rhs).T.ravel()
+        if use_shape:
+            # shape matching, linearised at the current field: the expressive curvature
+            # at the moved point plus its surface gradient times the change of the
+            # field should equal the neutral curvature of the point
+            tri = expressive_surface.faces[closest.triangles]
+            at = np.einsum("ij,ij->i", closest.barycentric, shape_of[tri])
+            gradient = gradient_of[closest.triangles]
+            current = moved - sample
+            target_shape = neutral_shape - at + np.einsum("ij,ij->i", gradient, current)
+            usable = np.isfinite(target_shape) & np.isfinite(gradient).all(axis=1) & (w > 0)
+            mismatch = np.where(usable, neutral_shape - at, 0.0)
+            shape_scale = max(1.4826 * float(np.median(np.abs(mismatch[usable]))) if usable.any() else 1.0,
+                              0.05)
+            v = np.abs(mismatch) / (options.tukey_factor * shape_scale)
+            ws = np.where(usable & (v < 1.0), (1.0 - v * v) ** 2, 0.0) * w * options.shape_weight
+            gradient = np.where(usable[:, None], gradient, 0.0)
+            target_shape = np.where(usable, target_shape, 0.0)
+            shape_rows = sp.hstack([basis.multiply(gradient[:, k:k + 1]) for k in range(3)]).tocsr()
+            matrix = matrix + shape_rows.T @ shape_rows.multiply(ws[:, None])
+            rhs = rhs + shape_rows.T @ (ws * target_shape)
         solution = SparseCholesky(sp.csc_matrix(matrix)).solve(rhs)
         values = solution.reshape(3, n_nodes).T.copy()
     return DenseMotion(lattice, values, residual_rms, inliers)
