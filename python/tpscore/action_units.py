@@ -18,7 +18,7 @@ import re
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Iterable, Mapping
+from typing import Mapping
 
 import numpy as np
 
@@ -258,7 +258,3 @@ def default_library() -> ActionUnitLibrary:
     """The shipped library: AU1, 2, 4 (upper face), AU12, 14, 15, 17, 20 (lower face)."""
     with resources.files("tpscore").joinpath("data/action_units.json").open("r", encoding="utf-8") as fh:
         return ActionUnitLibrary.from_dict(json.load(fh), source="action_units.json")
-
-
-def _iter_codes(activations: Iterable[Activation]) -> str:
-    return "+".join(a.label for a in activations)

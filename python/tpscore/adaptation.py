@@ -894,62 +894,50 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
             new = len(rows)
             candidate = fields + [offset]
             deformed_next = current
-            ed, em, e, coverage, normals_next = errors(candidate, deformed_next)
-            report = AdaptLevel(level, method, support, len(all_template), new, ed, em, e, coverage,
-                                time.perf_counter() - level_start)
-            reports.append(report)
-            if progress:
-                progress(report)
-            sigma /= 2.0
-            if np.isfinite(e) and e < best[0] or not np.isfinite(best[0]):
-                best = (e, level, candidate, deformed_next, (all_template, all_scan, all_sources))
-                best_anchors = rows
-            elif stop_at_minimum:
-                break
-            fields, deformed, normals = candidate, deformed_next, normals_next
-            continue
-        new = 0
-        if feature_mesh is not None and level <= feature_mesh_levels:
-            feature_mesh, new_t, new_s = feature_mesh.subdivide(template_surface, target,
-                                                               max_distance=max_ray * 2)
-            fm_template = np.vstack([fm_template, new_t])
-            fm_scan = np.vstack([fm_scan, new_s])
-            new += len(new_t)
-        chosen = curvature_vertices
-        kinds = ["curvature"] * len(chosen)
-        use_spread = spread
-        if use_spread:
-            spacing = max(sigma / 4.0, 1e-3 * width)
-            extra = spread_vertices(template_vertices, spacing)
-            extra = np.setdiff1d(extra, chosen)
-            chosen = np.concatenate([chosen, extra])
-            kinds = kinds + ["spread"] * len(extra)
-        hit, hit_points = target.cast(deformed[chosen], normals[chosen], max_distance=max_ray,
-                                      view_direction=view)
-        ray_template = template_vertices[chosen[hit]]
-        ray_scan = hit_points[hit]
-        ray_kinds = np.array(kinds, dtype=object)[hit]
-        new += len(ray_template)
-
-        all_template = np.vstack([landmark_sources, fm_template, ray_template])
-        all_scan = np.vstack([landmark_targets, fm_scan, ray_scan])
-        all_sources = np.concatenate([np.array(["landmark"] * len(landmark_sources), dtype=object),
-                                      np.array(["feature-mesh"] * len(fm_template), dtype=object), ray_kinds])
-        all_template, all_scan, all_sources = _dedupe(all_template, all_scan, all_sources, 1e-3 * width)
-        residual = all_scan - _evaluate(fields, all_template)
-        if len(all_template) < dense_threshold:
-            method, support = "rbf", float("nan")
-            offset = RBF(all_template, residual, "biharmonic", smoothing=rho)
         else:
-            method, support = "csrbf", sigma
-            try:
-                offset = CSRBF(all_template, residual, sigma, quadric=quadric, smoothing=csrbf_smoothing,
-                               tolerance=1e-8)
-            except ConvergenceError:
-                warn(f"level {level}: the CSRBF solve did not converge; the fit stops at level {level - 1}")
-                break
-        candidate = fields + [offset]
-        deformed_next = deformed + offset(template_vertices)
+            new = 0
+            if feature_mesh is not None and level <= feature_mesh_levels:
+                feature_mesh, new_t, new_s = feature_mesh.subdivide(template_surface, target,
+                                                                   max_distance=max_ray * 2)
+                fm_template = np.vstack([fm_template, new_t])
+                fm_scan = np.vstack([fm_scan, new_s])
+                new += len(new_t)
+            chosen = curvature_vertices
+            kinds = ["curvature"] * len(chosen)
+            use_spread = spread
+            if use_spread:
+                spacing = max(sigma / 4.0, 1e-3 * width)
+                extra = spread_vertices(template_vertices, spacing)
+                extra = np.setdiff1d(extra, chosen)
+                chosen = np.concatenate([chosen, extra])
+                kinds = kinds + ["spread"] * len(extra)
+            hit, hit_points = target.cast(deformed[chosen], normals[chosen], max_distance=max_ray,
+                                          view_direction=view)
+            ray_template = template_vertices[chosen[hit]]
+            ray_scan = hit_points[hit]
+            ray_kinds = np.array(kinds, dtype=object)[hit]
+            new += len(ray_template)
+
+            all_template = np.vstack([landmark_sources, fm_template, ray_template])
+            all_scan = np.vstack([landmark_targets, fm_scan, ray_scan])
+            all_sources = np.concatenate([np.array(["landmark"] * len(landmark_sources), dtype=object),
+                                          np.array(["feature-mesh"] * len(fm_template), dtype=object), ray_kinds])
+            all_template, all_scan, all_sources = _dedupe(all_template, all_scan, all_sources, 1e-3 * width)
+            residual = all_scan - _evaluate(fields, all_template)
+            if len(all_template) < dense_threshold:
+                method, support = "rbf", float("nan")
+                offset = RBF(all_template, residual, "biharmonic", smoothing=rho)
+            else:
+                method, support = "csrbf", sigma
+                try:
+                    offset = CSRBF(all_template, residual, sigma, quadric=quadric, smoothing=csrbf_smoothing,
+                                   tolerance=1e-8)
+                except ConvergenceError:
+                    warn(f"level {level}: the CSRBF solve did not converge; the fit stops at level {level - 1}")
+                    break
+            candidate = fields + [offset]
+            deformed_next = deformed + offset(template_vertices)
+        # the end of every level: errors, report, keep the best, stop past the minimum
         ed, em, e, coverage, normals_next = errors(candidate, deformed_next)
         report = AdaptLevel(level, method, support, len(all_template), new, ed, em, e, coverage,
                             time.perf_counter() - level_start)
@@ -959,6 +947,8 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
         sigma /= 2.0
         if np.isfinite(e) and e < best[0] or not np.isfinite(best[0]):
             best = (e, level, candidate, deformed_next, (all_template, all_scan, all_sources))
+            if refinement == "surface":
+                best_anchors = rows
         elif stop_at_minimum:
             break
         fields, deformed, normals = candidate, deformed_next, normals_next
