@@ -135,3 +135,49 @@ def test_landmark_refinement_recovers_a_translation_from_noisy_pairs():
     # a patch whose shape is flat in some direction keeps at most the labelled error
     assert np.median(error) < 0.35 * np.median(raw_error)
     assert np.all(error < raw_error + 0.2)
+
+
+def test_landmark_patch_shape_says_which_directions_it_pins_down():
+    # a tilted plane pins its patches down along its normal only; a sphere cap in
+    # every direction
+    x, y = np.meshgrid(np.linspace(-40, 40, 81), np.linspace(-40, 40, 81))
+    normal = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
+    plane = np.dstack([x, y, -(normal[0] * x + normal[1] * y) / normal[2]])
+    landmarks = np.full((22, 3), np.nan)
+    landmarks[0] = plane[40, 40]
+    landmarks[1] = plane[30, 50]
+    grid = FaceGrid.from_points(plane)
+    mesh = grid.mesh()
+    surface = MeshSurface(mesh.vertices, mesh.faces)
+    _, fit_rms, shape = refine_landmark_motion(plane, grid.mask, landmarks, surface, landmarks + 0.3,
+                                               return_shape=True)
+    for k in (0, 1):
+        values, vectors = np.linalg.eigh(shape[k])
+        assert values[-1] > 0.99 and values[:2].max() < 1e-6
+        assert abs(vectors[:, -1] @ normal) > 0.999
+    assert np.isnan(shape[2:]).all() and np.isnan(fit_rms[2:]).all()
+    r = 60.0
+    sphere = np.dstack([x, y, np.sqrt(r * r - x * x - y * y)])
+    grid = FaceGrid.from_points(sphere)
+    mesh = grid.mesh()
+    surface = MeshSurface(mesh.vertices, mesh.faces)
+    landmarks[:2] = sphere[[40, 30], [40, 50]]
+    _, _, shape = refine_landmark_motion(sphere, grid.mask, landmarks, surface, landmarks, return_shape=True)
+    # a 10 mm cap of a 60 mm sphere: normals spread by up to 1/6 rad around the centre
+    assert 1e-3 < np.linalg.eigvalsh(shape[0])[0] < 0.02
+
+
+def test_refined_pairs_keep_the_labelled_motion_along_a_flat_surface():
+    # a flat face moved along itself: the surface cannot say how far it slid, so the
+    # labelled motion decides along it, and the surface across it
+    x, y = np.meshgrid(np.linspace(-60, 60, 91), np.linspace(-60, 60, 91))
+    flat = np.dstack([x, y, np.zeros_like(x)])
+    grid = FaceGrid.from_points(flat)
+    mesh = grid.mesh()
+    surface = MeshSurface(mesh.vertices, mesh.faces)
+    rng = np.random.default_rng(1)
+    landmarks = np.column_stack([rng.uniform(-40, 40, (22, 2)), np.zeros(22)])
+    slide = np.array([2.0, 0.0, 0.0])
+    field = register_surfaces(flat, grid.mask, landmarks, surface, landmarks + slide)
+    moved = field(landmarks)
+    assert np.allclose(moved[:, 0], 2.0, atol=0.25) and np.abs(moved[:, 2]).max() < 0.05

@@ -391,7 +391,8 @@ _REFINE_RIDGE = 0.03
 
 
 def refine_landmark_motion(neutral_points, neutral_mask, neutral_landmarks, expressive_surface: MeshSurface,
-                           expressive_landmarks, radius_mm: float = 10.0, iterations: int = 8):
+                           expressive_landmarks, radius_mm: float = 10.0, iterations: int = 8,
+                           return_shape: bool = False):
     """Refine each landmark pair by matching the neutral surface around it onto the
     expressive surface.
 
@@ -421,6 +422,11 @@ def refine_landmark_motion(neutral_points, neutral_mask, neutral_landmarks, expr
     fit_rms_mm : (22,) ndarray
         RMS distance of the moved patch to the expressive surface (NaN where not
         refined); a patch that deforms, or straddles a hole, fits badly.
+    shape : (22, 3, 3) ndarray
+        Only with ``return_shape``: the mean of n n^T over the patch's fitted points
+        (NaN where not refined). A shift e along a unit direction v changes the
+        patch's rms distance by about e sqrt(v^T shape v): its eigenvalues say how
+        firmly the patch pins each direction down (a flat patch only along its normal).
     """
     points = np.asarray(neutral_points, dtype=np.float64)
     valid = points[np.asarray(neutral_mask, dtype=bool)]
@@ -429,8 +435,9 @@ def refine_landmark_motion(neutral_points, neutral_mask, neutral_landmarks, expr
     refined = np.full(lm_from.shape, np.nan)
     fit_rms = np.full(len(lm_from), np.nan)
     both = np.isfinite(lm_from).all(axis=1) & np.isfinite(lm_to).all(axis=1)
+    shape = np.full((len(lm_from), 3, 3), np.nan)
     if not both.any() or len(valid) == 0:
-        return refined, fit_rms
+        return (refined, fit_rms, shape) if return_shape else (refined, fit_rms)
     normals_of = _face_normals(expressive_surface)
     index = np.flatnonzero(both)
     patches = [valid[np.linalg.norm(valid - lm_from[k], axis=1) < radius_mm] for k in index]
@@ -459,7 +466,10 @@ def refine_landmark_motion(neutral_points, neutral_mask, neutral_landmarks, expr
     fitted = n > 0
     refined[index[fitted]] = lm_from[index[fitted]] + shift[fitted]
     fit_rms[index[fitted]] = np.sqrt(sq[fitted] / n[fitted])
-    return refined, fit_rms
+    # the last iteration's normal matrix without its ridge, per fitted point
+    shape[index[fitted]] = (matrix[fitted] - _REFINE_RIDGE * counts[fitted, None, None] * np.eye(3)) \
+        / np.maximum(np.bincount(owner, weights=w, minlength=len(index))[fitted], 1.0)[:, None, None]
+    return (refined, fit_rms, shape) if return_shape else (refined, fit_rms)
 
 
 def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressive_surface: MeshSurface,
@@ -506,21 +516,34 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     lm_from = np.asarray(neutral_landmarks, dtype=np.float64)
     lm_to = np.asarray(expressive_landmarks, dtype=np.float64)
     both = np.isfinite(lm_from).all(axis=1) & np.isfinite(lm_to).all(axis=1)
-    lm_weight = np.full(int(both.sum()), options.landmark_weight)
+    # each landmark pair pulls the field at its neutral landmark toward a target with a
+    # 3 x 3 weight: (u - t)^T W (u - t), W = lm_weight I for a labelled pair
+    lm_weight = np.repeat(options.landmark_weight * np.eye(3)[None], int(both.sum()), axis=0)
+    lm_pull = options.landmark_weight * (lm_to - lm_from)[both]          # W t
     if options.refine_radius_mm > 0:
-        refined, fit_rms = refine_landmark_motion(points, mask, lm_from, expressive_surface, lm_to,
-                                                  options.refine_radius_mm)
-        # trust in a refined pair: 1 up to refine_max_rms_mm, fading to 0 at twice it
-        # (a smooth fade, so that a small change of pose cannot flip a pair)
-        trust = np.clip(2.0 - fit_rms / options.refine_max_rms_mm, 0.0, 1.0)
-        trust = np.where(np.isfinite(trust), trust, 0.0)
-        lm_to = np.where(trust[:, None] > 0, trust[:, None] * np.nan_to_num(refined)
-                         + (1.0 - trust[:, None]) * lm_to, lm_to)
-        lm_weight = (trust * options.refined_landmark_weight
-                     + (1.0 - trust) * options.landmark_weight)[both]
+        refined, fit_rms, shape = refine_landmark_motion(points, mask, lm_from, expressive_surface, lm_to,
+                                                         options.refine_radius_mm, return_shape=True)
+        # trust in a refined pair, per direction: a patch that fits with rms r leaves its
+        # shift along an eigendirection of its normal matrix (eigenvalue l) uncertain by
+        # about r / sqrt(l); trusted fully up to refine_max_rms_mm, fading to 0 at twice
+        # it (along the normal l ~ 1: the fit's rms itself). Directions the patch's shape
+        # does not pin down (along a flat brow, a ridge) keep the labelled pair.
+        ok = both & np.isfinite(fit_rms)
+        trust = np.zeros((len(lm_from), 3, 3))
+        if ok.any():
+            eigenvalues, vectors = np.linalg.eigh(shape[ok])
+            error = fit_rms[ok, None] / np.sqrt(np.maximum(eigenvalues, 1e-12))
+            c = np.clip(2.0 - error / options.refine_max_rms_mm, 0.0, 1.0)
+            trust[ok] = np.einsum("kij,kj,klj->kil", vectors, c, vectors)
+        trust = trust[both]
+        eye = np.eye(3)[None]
+        lm_weight = options.landmark_weight * (eye - trust) + options.refined_landmark_weight * trust
+        lm_pull = np.einsum("kij,kj->ki", options.landmark_weight * (eye - trust), (lm_to - lm_from)[both]) \
+            + np.einsum("kij,kj->ki", options.refined_landmark_weight * trust,
+                        (np.nan_to_num(refined) - lm_from)[both])
     lm_basis = lattice.basis(lm_from[both, :2])
-    lm_target = lm_to[both] - lm_from[both]
-    lm_normal = lm_basis.T @ lm_basis.multiply(lm_weight[:, None])
+    lm_normal = sp.bmat([[lm_basis.T @ lm_basis.multiply(lm_weight[:, a, b][:, None]) for b in range(3)]
+                         for a in range(3)]).tocsr()
 
     normals_of = _face_normals(expressive_surface)
     membrane = sp.csr_matrix((3 * n_nodes, 3 * n_nodes))
@@ -567,11 +590,11 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         target_plane = np.einsum("ij,ij->i", closest.points - sample, normals)
         point_normal = basis.T @ basis.multiply(w[:, None])
         pull = options.tangential_weight * (alpha / stiffness[0] if options.tangential_decay else 1.0)
-        block = alpha * bending + pull * point_normal + lm_normal + ridge
-        matrix = (plane_rows.T @ weighted_plane) + sp.block_diag([block] * 3) + membrane
+        block = alpha * bending + pull * point_normal + ridge
+        matrix = (plane_rows.T @ weighted_plane) + sp.block_diag([block] * 3) + lm_normal + membrane
         rhs = plane_rows.T @ (w * target_plane)
         point_rhs = basis.T @ ((closest.points - sample) * (pull * w)[:, None])
-        lm_rhs = lm_basis.T @ (lm_target * lm_weight[:, None])
+        lm_rhs = lm_basis.T @ lm_pull
         rhs = rhs + (point_rhs + lm_rhs).T.ravel()
         if use_shape:
             # shape matching, linearised at the current field: the expressive curvature
