@@ -54,13 +54,13 @@ def parse_subjects(text: str) -> list[int]:
     return out
 
 
-def ensure_scans(shared: Path, out: Path, subjects: list[int]) -> None:
+def ensure_scans(shared: Path, out: Path, subjects: list[int], scan_args: list[str] = ()) -> None:
     missing = [s for s in subjects
                if not (out / f"bs{s:03d}" / f"bs{s:03d}_LFAU_20_0_gt.npz").is_file()]
     if missing:
         print(f"generating scans of subjects {missing} ...", flush=True)
         subprocess.run([sys.executable, str(shared / "tools" / "make_scans.py"), str(out),
-                        "--subjects", *map(str, missing)], check=True, stdout=subprocess.DEVNULL)
+                        "--subjects", *map(str, missing), *scan_args], check=True, stdout=subprocess.DEVNULL)
 
 
 def scan_path(out: Path, subject: int, code: str) -> Path:
@@ -80,6 +80,9 @@ def main(argv=None) -> int:
                     help="extra variants NAME=key:value,... changing the default's MotionOptions "
                          "(e.g. shape4=shape_weight:4.0); list NAME under --variants too")
     ap.add_argument("--out", default=str(ROOT / "bench-output"))
+    ap.add_argument("--scan-args", default="",
+                    help="extra make_scans.py options, e.g. \"--pose-deg 10 --missing-landmark-p 0.1\" "
+                         "(the scans go to a folder named after them)")
     args = ap.parse_args(argv)
 
     shared = shared_dir()
@@ -92,9 +95,10 @@ def main(argv=None) -> int:
     scorer = load_module(shared / "tools" / "score_transfer.py", "score_transfer")
     faces = np.load(shared / "data" / "ict-facekit" / "face_model.npz")["faces"]
     out = Path(args.out)
-    scans = out / "scans"
+    scan_args = args.scan_args.split()
+    scans = out / ("scans" + "".join(scan_args).replace("--", "_"))
     subjects = parse_subjects(args.subjects)
-    ensure_scans(shared, scans, subjects)
+    ensure_scans(shared, scans, subjects, scan_args)
 
     thesis = TransferOptions.thesis()
     default = TransferOptions()
@@ -226,8 +230,9 @@ def main(argv=None) -> int:
     table = "\n".join(lines)
     print(table)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "fidelity.md").write_text(table + "\n")
-    (out / "fidelity.json").write_text(json.dumps(rows, indent=1))
+    stem = "fidelity" + "".join(scan_args).replace("--", "_")
+    (out / f"{stem}.md").write_text(table + "\n")
+    (out / f"{stem}.json").write_text(json.dumps(rows, indent=1))
     return 0
 
 
