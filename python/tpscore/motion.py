@@ -23,8 +23,11 @@ field u(x, y) (the faces look toward +z, so a field over the x-y plane covers th
   one with a weight that reflects their labelling noise (a soft constraint, so two
   noisy landmarks cannot fold the field). Before that, each pair is refined by
   matching the neutral surface patch around the landmark onto the expressive surface
-  (:func:`refine_landmark_motion`); pairs whose patch fits are far less noisy than the
-  labels and pull harder, the others keep their labelled motion and weight;
+  (:func:`refine_landmark_motion`). A patch pins its shift down only in the directions
+  its shape constrains (along the normal always, along the surface only where it is
+  curved), so the refined pair is trusted per direction: where the patch fits and its
+  shape holds the shift, it replaces the label and pulls harder; along directions it
+  leaves loose, and for patches that deform, the labelled motion and weight stay;
 * **smoothness**: the thin-plate bending energy of the field on the lattice (second
   differences), with a stiffness that decreases over the iterations, so the field
   first follows the large motions and then the fine ones.
@@ -86,13 +89,15 @@ class MotionOptions:
         matched onto the expressive surface to refine the landmark pair (0 = raw pairs,
         see :func:`refine_landmark_motion`).
     refined_landmark_weight : float
-        Weight of a refined landmark pair (its patch fitted within ``refine_max_rms_mm``)
-        relative to one data point; pairs whose patch did not fit keep
-        ``landmark_weight`` and their labelled motion.
+        Weight of a refined landmark pair, along the directions it is trusted in (see
+        ``refine_max_rms_mm``), relative to one data point; along the others the pair
+        keeps ``landmark_weight`` and its labelled motion.
     refine_max_rms_mm : float
-        A refined pair is trusted fully when the rms distance of its patch to the
-        expressive surface is below this, and not at all beyond twice it (a linear
-        blend of refined and labelled pair, and of their weights, in between).
+        A refined pair is trusted fully along a direction when its uncertainty there
+        (the patch's rms distance to the expressive surface over the square root of the
+        patch's normal-matrix eigenvalue in that direction) is below this, and not at
+        all beyond twice it (a linear blend of refined and labelled pair, and of their
+        weights, in between).
     membrane_weight : float
         Weight of the membrane (stretching) energy of the field over the neutral
         surface, per data point (0 = off): the linearised change of the surface's
