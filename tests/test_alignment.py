@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from tpscore import datasets
 from tpscore.alignment import align_rigid, rigid_landmark_fit
@@ -13,11 +14,8 @@ def _grid(scan):
 
 
 def _rotation(yaw, pitch, roll):
-    y, p, r = np.radians([yaw, pitch, roll])
-    ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
-    rx = np.array([[1, 0, 0], [0, np.cos(p), -np.sin(p)], [0, np.sin(p), np.cos(p)]])
-    rz = np.array([[np.cos(r), -np.sin(r), 0], [np.sin(r), np.cos(r), 0], [0, 0, 1]])
-    return ry @ rx @ rz
+    """Ry(yaw) Rx(pitch) Rz(roll), degrees."""
+    return Rotation.from_euler("YXZ", [yaw, pitch, roll], degrees=True).as_matrix()
 
 
 @pytest.fixture(scope="module")

@@ -21,6 +21,7 @@ The result maps the expressive scan's frame onto the neutral scan's frame.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .normalise import FrameTransform, similarity_transform
 from .preprocess import FaceGrid
@@ -88,16 +89,6 @@ class RigidAlignment:
     def __repr__(self) -> str:
         return (f"RigidAlignment(iterations={self.iterations}, "
                 f"inlier_rms_mm={self.inlier_rms_mm:.3f})")
-
-
-def _rotation(omega: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the rotation vector omega (Rodrigues)."""
-    angle = float(np.linalg.norm(omega))
-    if angle < 1e-15:
-        return np.eye(3)
-    k = omega / angle
-    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * cross + (1.0 - np.cos(angle)) * cross @ cross
 
 
 def align_rigid(moving: FaceGrid, fixed: FaceGrid, *, fixed_surface: MeshSurface | None = None,
@@ -175,7 +166,7 @@ def align_rigid(moving: FaceGrid, fixed: FaceGrid, *, fixed_surface: MeshSurface
         jac = np.hstack([np.cross(moved - centre, normals), normals])
         normal_matrix = (jac * weight[:, None]).T @ jac + 1e-9 * np.eye(6)
         step = np.linalg.solve(normal_matrix, -(jac * weight[:, None]).T @ signed)
-        rotation = _rotation(step[:3])
+        rotation = Rotation.from_rotvec(step[:3]).as_matrix()
         update = np.eye(4)
         update[:3, :3] = rotation
         update[:3, 3] = centre + step[3:] - rotation @ centre

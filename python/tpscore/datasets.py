@@ -83,6 +83,7 @@ import re
 from dataclasses import dataclass, field, fields
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .landmarks import LANDMARK_NAMES
 
@@ -695,15 +696,6 @@ def _invert_skin(anatomy, expression, pose, x, y):
     return skin[0].reshape(x.shape), skin[1].reshape(x.shape), residual.reshape(x.shape)
 
 
-def _rotation(yaw_deg, pitch_deg, roll_deg):
-    """R = Ry(yaw) Rx(pitch) Rz(roll), degrees, right-handed."""
-    yaw, pitch, roll = np.radians([yaw_deg, pitch_deg, roll_deg])
-    ry = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
-    rx = np.array([[1, 0, 0], [0, np.cos(pitch), -np.sin(pitch)], [0, np.sin(pitch), np.cos(pitch)]])
-    rz = np.array([[np.cos(roll), -np.sin(roll), 0], [np.sin(roll), np.cos(roll), 0], [0, 0, 1]])
-    return ry @ rx @ rz
-
-
 @dataclass(frozen=True, eq=False)
 class SyntheticScan:
     """A procedural Bosphorus-like scan and its ground truth.
@@ -826,7 +818,8 @@ def make_face(identity=None, expression=None, *, spacing_mm: float = DEFAULT_SPA
     if pose_limit > 0:
         yaw, pitch = pose_rng.uniform(-pose_limit, pose_limit, size=2)
         roll = pose_rng.uniform(-pose_limit / 2, pose_limit / 2)
-        rotation = _rotation(yaw, pitch, roll)
+        # R = Ry(yaw) Rx(pitch) Rz(roll): intrinsic y, x', z'' angles
+        rotation = Rotation.from_euler("YXZ", [yaw, pitch, roll], degrees=True).as_matrix()
         pivot = np.array([0.0, 0.0, float(_height(anatomy, 0.0, 0.0))])
         shift = pose_rng.uniform(-POSE_MAX_TRANSLATION_MM, POSE_MAX_TRANSLATION_MM, size=3)
         pose[:3, :3] = rotation
