@@ -116,6 +116,7 @@ def main(argv=None) -> int:
         "thesis+merge-landmarks": replace(thesis, merge_landmarks_mm=TransferOptions().merge_landmarks_mm),
         "thesis+anchors": replace(thesis, anchors=True),
         "default-fade-small": replace(default, still_motion_mm=0.5),
+        "default-no-mirror": replace(default, mirror_average=False),
         "adapt-field": replace(default, motion="adapt"),
         "default": default,
         # the registration's choices, each undone or added on its own

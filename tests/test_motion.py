@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 
 from tpscore import datasets
-from tpscore.motion import (BSplineLattice, MotionOptions, curvature_image, face_gradients,
-                           refine_landmark_motion, register_surfaces)
+from tpscore.motion import (BSplineLattice, MirroredMotion, MotionOptions, curvature_image,
+                           face_gradients, refine_landmark_motion, register_surfaces)
+from tpscore.normalise import FrameTransform
 from tpscore.preprocess import FaceGrid, resample_scan
 from tpscore.spatial import MeshSurface
 
@@ -181,3 +182,45 @@ def test_refined_pairs_keep_the_labelled_motion_along_a_flat_surface():
     field = register_surfaces(flat, grid.mask, landmarks, surface, landmarks + slide)
     moved = field(landmarks)
     assert np.allclose(moved[:, 0], 2.0, atol=0.25) and np.abs(moved[:, 2]).max() < 0.05
+
+
+def _plane_points(x_min=-40.0, x_max=40.0):
+    x, y = np.meshgrid(np.arange(x_min, x_max + 0.5, 1.0), np.arange(-30.0, 30.5, 1.0))
+    return np.stack([x.ravel(), y.ravel(), 0.05 * y.ravel() ** 2], axis=1)
+
+
+def _x_mirror():
+    return FrameTransform(np.diag([-1.0, 1.0, 1.0, 1.0]), "mirror")
+
+
+def test_mirrored_motion_keeps_the_symmetric_part_and_drops_the_rest():
+    def symmetric(p):   # M u(S p) = u(p) for the mirror x -> -x
+        return np.stack([0.1 * p[:, 0], 1.0 + 0.01 * p[:, 0] ** 2, np.cos(p[:, 0] / 9.0)], axis=1)
+
+    def antisymmetric(p):
+        return np.stack([np.full(len(p), 0.7), 0.02 * p[:, 0], np.sin(p[:, 0] / 7.0)], axis=1)
+
+    points = _plane_points()
+    mirrored = MirroredMotion(lambda p: symmetric(p) + antisymmetric(p), _x_mirror(), points)
+    assert np.abs(mirrored(points) - symmetric(points)).max() < 1e-12
+    assert np.abs(MirroredMotion(symmetric, _x_mirror(), points)(points) - symmetric(points)).max() < 1e-12
+    assert np.isnan(mirrored(np.array([[np.nan, 0.0, 0.0]]))).all()
+
+
+def test_mirrored_motion_keeps_its_own_motion_where_the_mirror_is_off_the_face():
+    def field(p):
+        return np.stack([np.full(len(p), 1.0), 0.01 * p[:, 0], np.zeros(len(p))], axis=1)
+
+    covered = _plane_points(x_min=-10.0)      # the face's right side is mostly missing
+    mirrored = MirroredMotion(field, _x_mirror(), covered, reach_mm=3.0)
+    far = np.array([[30.0, 0.0, 0.0]])        # its mirror image is off the face
+    assert np.abs(mirrored(far) - field(far)).max() < 1e-12
+    missing = np.array([[-30.0, 5.0, 1.25]])  # off the face, its mirror image on it
+    assert np.abs(mirrored(missing) - field(missing @ np.diag([-1.0, 1.0, 1.0])) * [-1.0, 1.0, 1.0]
+                  ).max() < 1e-5
+    inner = np.array([[5.0, 2.0, 0.2]])       # both sides covered: the mean
+    assert np.abs(mirrored(inner) - [[0.0, 0.0, 0.0]]).max() < 1e-12
+    with pytest.raises(ValueError, match="reach_mm"):
+        MirroredMotion(field, _x_mirror(), covered, reach_mm=0.0)
+    with pytest.raises(ValueError, match="finite"):
+        MirroredMotion(field, _x_mirror(), np.full((4, 3), np.nan))

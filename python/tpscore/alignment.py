@@ -17,17 +17,24 @@ a rotation and a translation only:
    drop out while the still parts (forehead, nose, temples) decide the pose.
 
 The result maps the expressive scan's frame onto the neutral scan's frame.
+
+The same fit finds a face's plane of symmetry (:func:`fit_mirror_symmetry`): the scan
+mirrored (left and right landmarks swapped) is aligned rigidly onto itself, and the
+reflection followed by that alignment is the face's mirror map.
 """
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from .landmarks import MIRROR_LANDMARK
 from .normalise import FrameTransform, similarity_transform
 from .preprocess import FaceGrid
 from .spatial import MeshSurface
 
-__all__ = ["rigid_landmark_fit", "align_rigid", "RigidAlignment"]
+__all__ = ["rigid_landmark_fit", "align_rigid", "RigidAlignment", "fit_mirror_symmetry"]
 
 # A rigid fit over landmarks needs three pairs not on one line.
 _MIN_RIGID_LANDMARKS = 3
@@ -176,3 +183,49 @@ def align_rigid(moving: FaceGrid, fixed: FaceGrid, *, fixed_surface: MeshSurface
         if motion < tolerance_mm:
             break
     return RigidAlignment(FrameTransform(matrix, "rigid"), start, done, inlier_rms)
+
+
+def fit_mirror_symmetry(grid: FaceGrid, **align_options) -> FrameTransform:
+    """The reflection across a face's plane of symmetry, in the grid's frame.
+
+    The grid is reflected across the plane x = 0 of its frame (its left and right
+    landmarks swapped) and aligned rigidly onto the unreflected grid with
+    :func:`align_rigid` (landmarks, then ICP on the surface); the reflection followed
+    by that rigid map sends each point of the face near its mirror image. The result is
+    projected onto the nearest exact plane reflection, so applying it twice is the
+    identity.
+
+    Parameters
+    ----------
+    grid : FaceGrid
+        A face with landmarks; x should run roughly from one side of the face to the
+        other (true of scans and of normalised faces).
+    **align_options
+        Passed to :func:`align_rigid`.
+
+    Returns
+    -------
+    FrameTransform
+        The reflection (``method == "mirror"``, determinant -1).
+
+    Raises
+    ------
+    ValueError
+        Fewer than three landmarks whose mirror partners are present.
+    """
+    flip = np.diag([-1.0, 1.0, 1.0])
+    swap = list(MIRROR_LANDMARK)
+    mirrored = replace(grid, points=grid.points @ flip, landmarks=(grid.landmarks @ flip)[swap],
+                       landmark_vertices=grid.landmark_vertices[swap])
+    rigid = align_rigid(mirrored, grid, **align_options).transform.matrix
+    linear = rigid[:3, :3] @ flip
+    # the nearest plane reflection I - 2 n n^T: n is the eigenvector of the linear
+    # part's symmetric half with the most negative eigenvalue; the plane n.x = d is the
+    # set of midpoints between points and their images
+    _, vectors = np.linalg.eigh(0.5 * (linear + linear.T))
+    normal = vectors[:, 0]
+    offset = 0.5 * float(normal @ rigid[:3, 3])
+    matrix = np.eye(4)
+    matrix[:3, :3] = np.eye(3) - 2.0 * np.outer(normal, normal)
+    matrix[:3, 3] = 2.0 * offset * normal
+    return FrameTransform(matrix, "mirror")

@@ -39,11 +39,11 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .action_units import ActionUnit, ActionUnitLibrary, Activation, default_library
-from .alignment import align_rigid
+from .alignment import align_rigid, fit_mirror_symmetry
 from .csrbf import CSRBF
 from .landmarks import landmark_index, landmark_map
-from .motion import (AdaptedMotion, DenseMotion, MotionOptions, adapt_motion, curvature_image,
-                     register_surfaces)
+from .motion import (AdaptedMotion, DenseMotion, MirroredMotion, MotionOptions, adapt_motion,
+                     curvature_image, register_surfaces)
 from .normalise import FrameTransform, landmark_transform
 from .preprocess import FaceGrid
 from .rbf import TPS
@@ -117,6 +117,12 @@ class TransferOptions:
     side_transition_mm : float
         Width of the smooth blend across the midline for one-sided AUs (``12L``) in
         the field animation.
+    mirror_average : bool
+        For expressions that move both sides of the face (every AU without ``L`` or
+        ``R``, and emotions), average the dense field with its mirror image across the
+        source's plane of symmetry (:class:`tpscore.motion.MirroredMotion`): a
+        bilateral AU moves both sides alike, so the two sides' independent errors
+        average out. One-sided AUs (``12L``) and landmark models are left as they are.
     still_motion_mm : float
         Source motion below about this size is treated as registration noise and
         faded out (a smooth ramp from half of it to one and a half times it); 0 keeps
@@ -145,6 +151,7 @@ class TransferOptions:
     wendland_support_mm: float = 40.0
     transition_mm: float = 10.0
     side_transition_mm: float = 10.0
+    mirror_average: bool = True
     still_motion_mm: float = 0.0
     scale_lower_face: bool = True
     landmark_smoothing: float = 0.0
@@ -181,7 +188,8 @@ class TransferOptions:
         landmarks."""
         return cls(normalisation="affine", alignment="normalise", motion="landmarks",
                    animation="control-points", warp="tps", snap="vertex", anchors=False,
-                   transition_mm=0.0, landmark_smoothing=0.0, merge_landmarks_mm=0.0)
+                   transition_mm=0.0, mirror_average=False, landmark_smoothing=0.0,
+                   merge_landmarks_mm=0.0)
 
     @classmethod
     def landmark_model(cls) -> "TransferOptions":
@@ -301,13 +309,14 @@ class ExpressionModel:
     """The modelled motion of one or more AUs on a source person.
 
     ``dense`` is the registered displacement field of the source (None for the
-    landmark model); ``motions`` hold each AU's control points and their motion.
+    landmark model; averaged with its mirror image for a bilateral expression);
+    ``motions`` hold each AU's control points and their motion.
     """
 
     source: NormalisedFace
     motions: list[ControlPointMotion]
     options: TransferOptions
-    dense: DenseMotion | AdaptedMotion | None = None
+    dense: DenseMotion | AdaptedMotion | MirroredMotion | None = None
 
     @property
     def labels(self) -> list[str]:
@@ -353,6 +362,17 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
                              expressive_curvature=expressive_curvature)
 
 
+def _mirrored(dense, source_neutral: NormalisedFace):
+    """The dense field averaged with its mirror image, or unchanged (with a warning)
+    when the face's plane of symmetry cannot be fitted."""
+    try:
+        mirror = fit_mirror_symmetry(source_neutral.grid)
+    except ValueError as error:
+        warnings.warn(f"the field is not averaged with its mirror image: {error}", stacklevel=3)
+        return dense
+    return MirroredMotion(dense, mirror, source_neutral.grid.points[source_neutral.grid.mask])
+
+
 def _fade_small(displacement: np.ndarray, still_mm: float) -> np.ndarray:
     """Fade displacements shorter than about still_mm out (smooth ramp from 0.5 to 1.5
     times it): registration noise where the skin does not move would otherwise leak."""
@@ -375,6 +395,8 @@ def model_expression(source_neutral: NormalisedFace, source_expressive: Normalis
     dense = None
     if options.motion != "landmarks":
         dense = dense_motion(source_neutral, source_expressive, options)
+        if options.mirror_average and all(act.side is None for act in activations):
+            dense = _mirrored(dense, source_neutral)
     else:
         to_expressive = landmark_map(source_neutral.landmarks, source_expressive.landmarks,
                                      smoothing=options.landmark_smoothing,
