@@ -120,9 +120,11 @@ class TransferOptions:
     mirror_average : bool
         For expressions that move both sides of the face (every AU without ``L`` or
         ``R``, and emotions), average the dense field with its mirror image across the
-        source's plane of symmetry (:class:`tpscore.motion.MirroredMotion`): a
-        bilateral AU moves both sides alike, so the two sides' independent errors
-        average out. One-sided AUs (``12L``) and landmark models are left as they are.
+        source's plane of symmetry (:class:`tpscore.motion.MirroredMotion`), and the
+        carried field with its mirror image across the target's: a bilateral AU moves
+        both sides alike, so the two sides' independent errors (landmark labels, holes,
+        scanner noise) average out. One-sided AUs (``12L``) and landmark models are left
+        as they are.
     still_motion_mm : float
         Source motion below about this size is treated as registration noise and
         faded out (a smooth ramp from half of it to one and a half times it); 0 keeps
@@ -362,15 +364,15 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
                              expressive_curvature=expressive_curvature)
 
 
-def _mirrored(dense, source_neutral: NormalisedFace):
-    """The dense field averaged with its mirror image, or unchanged (with a warning)
-    when the face's plane of symmetry cannot be fitted."""
+def _mirrored(field, face: NormalisedFace):
+    """A displacement field on ``face`` averaged with its mirror image across the face's
+    plane of symmetry, or unchanged (with a warning) when the plane cannot be fitted."""
     try:
-        mirror = fit_mirror_symmetry(source_neutral.grid)
+        mirror = fit_mirror_symmetry(face.grid)
     except ValueError as error:
         warnings.warn(f"the field is not averaged with its mirror image: {error}", stacklevel=3)
-        return dense
-    return MirroredMotion(dense, mirror, source_neutral.grid.points[source_neutral.grid.mask])
+        return field
+    return MirroredMotion(field, mirror, face.grid.points[face.grid.mask])
 
 
 def _fade_small(displacement: np.ndarray, still_mm: float) -> np.ndarray:
@@ -565,7 +567,15 @@ def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
         to_source = landmark_map(target.landmarks, model.source.landmarks,
                                  smoothing=options.landmark_smoothing,
                                  merge_mm=options.merge_landmarks_mm, what="target -> source")
-        carried = _fade_small(model.dense(to_source(flat[valid])), options.still_motion_mm)
+
+        def carry(points):
+            return model.dense(to_source(points))
+
+        if isinstance(model.dense, MirroredMotion):
+            # a bilateral expression is symmetric on the target too: the mirror image
+            # of the carried field evens out the correspondence's landmark noise
+            carry = _mirrored(carry, target)
+        carried = _fade_small(carry(flat[valid]), options.still_motion_mm)
     by_region: dict[str, list[ControlPointMotion]] = {}
     for motion in model.motions:
         by_region.setdefault(motion.activation.action_unit.region, []).append(motion)
