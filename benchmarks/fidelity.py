@@ -108,7 +108,7 @@ def main(argv=None) -> int:
         "landmark-model-normalise": replace(TransferOptions.landmark_model(), alignment="normalise"),
         "dense-control-points": replace(default, animation="control-points"),
         "dense-control-points-wendland": replace(default, animation="control-points", warp="wendland"),
-        "default-no-mouth-scale": replace(default, scale_lower_face=False),
+        "default-mouth-scale": replace(default, scale_lower_face=True),
         "default-hard-seam": replace(default, transition_mm=0.0),
         # each of the defaults' departures from the method, added on its own
         "thesis+similarity": replace(thesis, normalisation="similarity"),

@@ -130,7 +130,10 @@ class TransferOptions:
         faded out (a smooth ramp from half of it to one and a half times it); 0 keeps
         every motion.
     scale_lower_face : bool
-        Scale lower-face motion by the ratio of the mouth widths, target / source.
+        Scale lower-face motion by the ratio of the mouth widths, target / source (the
+        method as published). Off by default: the faces are already brought to one size
+        by the normalisation, and the ratio of two noisy landmark distances scales the
+        whole motion by its error.
     landmark_smoothing : float
         Smoothing lambda of the landmark TPS maps (0 = interpolate the landmarks).
     merge_landmarks_mm : float
@@ -155,7 +158,7 @@ class TransferOptions:
     side_transition_mm: float = 10.0
     mirror_average: bool = True
     still_motion_mm: float = 0.0
-    scale_lower_face: bool = True
+    scale_lower_face: bool = False
     landmark_smoothing: float = 0.0
     merge_landmarks_mm: float = 3.0
     motion_options: MotionOptions = MotionOptions()
@@ -190,14 +193,15 @@ class TransferOptions:
         landmarks."""
         return cls(normalisation="affine", alignment="normalise", motion="landmarks",
                    animation="control-points", warp="tps", snap="vertex", anchors=False,
-                   transition_mm=0.0, mirror_average=False, landmark_smoothing=0.0,
-                   merge_landmarks_mm=0.0)
+                   transition_mm=0.0, mirror_average=False, scale_lower_face=True,
+                   landmark_smoothing=0.0, merge_landmarks_mm=0.0)
 
     @classmethod
     def landmark_model(cls) -> "TransferOptions":
         """The best variant without dense motion: rigid alignment, landmark-modelled
-        control points, anchored TPS warp, smooth seam."""
-        return cls(motion="landmarks", animation="control-points")
+        control points, anchored TPS warp, smooth seam (lower-face motion scaled by
+        the mouth widths, as the method does)."""
+        return cls(motion="landmarks", animation="control-points", scale_lower_face=True)
 
 
 # --------------------------------------------------------------------------- faces
@@ -368,7 +372,7 @@ def _mirrored(field, face: NormalisedFace):
     """A displacement field on ``face`` averaged with its mirror image across the face's
     plane of symmetry, or unchanged (with a warning) when the plane cannot be fitted."""
     try:
-        mirror = fit_mirror_symmetry(face.grid)
+        mirror = fit_mirror_symmetry(face.grid, fixed_surface=face.surface())
     except ValueError as error:
         warnings.warn(f"the field is not averaged with its mirror image: {error}", stacklevel=3)
         return field
