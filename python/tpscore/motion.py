@@ -178,9 +178,8 @@ class BSplineLattice:
     def n_nodes(self) -> int:
         return self.shape[0] * self.shape[1]
 
-    def basis(self, xy, derivative: str = "") -> sp.csr_matrix:
-        """(m, n_nodes) sparse matrix: the field at points (m, 2) is basis @ node_values;
-        with ``derivative="x"`` (``"y"``) its derivative along x (y), per mm."""
+    def _stencil(self, xy, derivative: str = ""):
+        """For points (m, 2): the (m, 16) node indices each depends on, and their weights."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         g = (xy - self.origin) / self.spacing
         cell = np.floor(g).astype(np.int64)
@@ -198,9 +197,22 @@ class BSplineLattice:
         offsets = np.arange(-1, 3)
         cols = (cell[:, 1, None, None] + offsets[None, :, None]) * self.shape[1] \
             + (cell[:, 0, None, None] + offsets[None, None, :])
-        values = wy[:, :, None] * wx[:, None, :]
-        rows = np.repeat(np.arange(len(xy)), 16)
-        return sp.csr_matrix((values.ravel(), (rows, cols.ravel())), shape=(len(xy), self.n_nodes))
+        return cols.reshape(-1, 16), (wy[:, :, None] * wx[:, None, :]).reshape(-1, 16)
+
+    def basis(self, xy, derivative: str = "") -> sp.csr_matrix:
+        """(m, n_nodes) sparse matrix: the field at points (m, 2) is basis @ node_values;
+        with ``derivative="x"`` (``"y"``) its derivative along x (y), per mm."""
+        cols, values = self._stencil(xy, derivative)
+        rows = np.repeat(np.arange(len(cols)), 16)
+        return sp.csr_matrix((values.ravel(), (rows, cols.ravel())), shape=(len(cols), self.n_nodes))
+
+    def evaluate(self, xy, node_values) -> np.ndarray:
+        """The field at points (m, 2) from its (n_nodes, k) node values: ``basis(xy) @
+        node_values`` without building the matrix."""
+        cols, values = self._stencil(xy)
+        node_values = np.asarray(node_values, dtype=np.float64).reshape(self.n_nodes, -1)
+        return np.stack([(values * node_values[:, k][cols]).sum(axis=1)
+                         for k in range(node_values.shape[1])], axis=1)
 
     def bending(self) -> sp.csr_matrix:
         """(n_nodes, n_nodes) thin-plate bending energy of the node values (second
@@ -254,7 +266,7 @@ class DenseMotion:
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         out = np.full(p.shape, np.nan)
         ok = np.isfinite(p).all(axis=1)
-        out[ok] = self.lattice.basis(p[ok, :2]) @ self.node_values
+        out[ok] = self.lattice.evaluate(p[ok, :2], self.node_values)
         return out
 
 
@@ -653,9 +665,10 @@ class MirroredMotion:
     reflection, :func:`tpscore.alignment.fit_mirror_symmetry`) and M its linear part.
     The two sides' independent errors (landmark labels, scanner noise, holes) average
     out. Each term is weighted by how well the registered face covers its point (full
-    within ``reach_mm`` of a vertex of the face, none beyond twice that), so a point
-    whose mirror image falls off the scan, or into a hole, keeps its own motion, and a
-    point in a hole takes its mirror's.
+    within ``reach_mm`` of a vertex of the face, none beyond twice that, measured in the
+    x-y plane the face is a height field over), so a point whose mirror image falls off
+    the scan, or into a hole, keeps its own motion, and a point in a hole takes its
+    mirror's.
 
     Parameters
     ----------
@@ -670,7 +683,7 @@ class MirroredMotion:
     """
 
     def __init__(self, motion, mirror, covered_points, reach_mm: float = 3.0):
-        from .spatial import KDTree
+        from scipy.ndimage import distance_transform_edt
 
         covered = np.asarray(covered_points, dtype=np.float64).reshape(-1, 3)
         covered = covered[np.isfinite(covered).all(axis=1)]
@@ -681,10 +694,22 @@ class MirroredMotion:
         self.motion = motion
         self.mirror = mirror
         self.reach_mm = float(reach_mm)
-        self._tree = KDTree(covered)
+        # distance to the face over a raster of the x-y plane (a quarter of the reach per
+        # cell): one lookup per point instead of a nearest-neighbour search
+        self._cell = self.reach_mm / 4.0
+        self._origin = covered[:, :2].min(axis=0) - 2.0 * self.reach_mm
+        shape = np.ceil((covered[:, :2].max(axis=0) + 2.0 * self.reach_mm - self._origin)
+                        / self._cell).astype(int) + 1
+        occupied = np.zeros(shape, dtype=bool)
+        cells = np.floor((covered[:, :2] - self._origin) / self._cell).astype(int)
+        occupied[cells[:, 0], cells[:, 1]] = True
+        self._distance = distance_transform_edt(~occupied) * self._cell
 
     def _coverage(self, points: np.ndarray) -> np.ndarray:
-        distance, _ = self._tree.query(points)
+        cells = np.floor((points[:, :2] - self._origin) / self._cell).astype(int)
+        inside = ((cells >= 0) & (cells < self._distance.shape)).all(axis=1)
+        distance = np.full(len(points), np.inf)
+        distance[inside] = self._distance[cells[inside, 0], cells[inside, 1]]
         return np.clip(2.0 - distance / self.reach_mm, 0.0, 1.0)
 
     def __call__(self, points) -> np.ndarray:
