@@ -21,8 +21,8 @@ from .expression_transfer import (
     normalise_face,
     transfer,
 )
-from .alignment import RigidAlignment, align_rigid
-from .motion import DenseMotion, MotionOptions, register_surfaces
+from .alignment import RigidAlignment, align_rigid, fit_mirror_symmetry
+from .motion import DenseMotion, MirroredMotion, MotionOptions, register_surfaces
 from .adaptation import AdaptationWarning, AdaptLevel, AdaptResult, Correspondences, adapt
 from .calibration import AxesCalibration, axes_calibration, calibrate
 from .correspondence import FeatureMesh, curvature_features
@@ -102,8 +102,10 @@ __all__ = [
     "TransferOptions",
     "align_rigid",
     "RigidAlignment",
+    "fit_mirror_symmetry",
     "register_surfaces",
     "DenseMotion",
+    "MirroredMotion",
     "MotionOptions",
     "ExpressionModel",
     "model_expression",
