@@ -45,7 +45,8 @@ from .sparse import SparseCholesky
 from .spatial import MeshSurface
 
 __all__ = ["MotionOptions", "DenseMotion", "BSplineLattice", "register_surfaces", "AdaptedMotion",
-           "MirroredMotion", "adapt_motion", "curvature_image", "face_gradients", "refine_landmark_motion"]
+           "MirroredMotion", "adapt_motion", "curvature_image", "face_gradients",
+           "refine_landmark_motion"]
 
 
 @dataclass(frozen=True)
