@@ -79,6 +79,9 @@ def main(argv=None) -> int:
     ap.add_argument("--motion-variants", nargs="*", default=[],
                     help="extra variants NAME=key:value,... changing the default's MotionOptions "
                          "(e.g. shape4=shape_weight:4.0); list NAME under --variants too")
+    ap.add_argument("--option-variants", nargs="*", default=[],
+                    help="extra variants NAME=key:value,... changing the default's TransferOptions "
+                         "(e.g. smooth1=landmark_smoothing:1.0); list NAME under --variants too")
     ap.add_argument("--out", default=str(ROOT / "bench-output"))
     ap.add_argument("--scan-args", default="",
                     help="extra make_scans.py options, e.g. \"--pose-deg 10 --missing-landmark-p 0.1\" "
@@ -129,11 +132,18 @@ def main(argv=None) -> int:
         "registration-round-1": replace(default, motion_options=replace(
             default.motion_options, refine_radius_mm=0.0, iterations=6, tangential_weight=0.05)),
     }
-    # registration settings from the command line: name=key:value,key:value
-    for spec in args.motion_variants:
+    # pipeline and registration settings from the command line: name=key:value,key:value
+    def parse_variant(spec):
         name, _, settings = spec.partition("=")
         changes = {k: (v == "true") if v in ("true", "false") else float(v) if "." in v or "e" in v else int(v)
                    for k, v in (item.split(":") for item in settings.split(",") if item)}
+        return name, changes
+
+    for spec in args.option_variants:
+        name, changes = parse_variant(spec)
+        variants[name] = replace(default, **changes)
+    for spec in args.motion_variants:
+        name, changes = parse_variant(spec)
         variants[name] = replace(default, motion_options=replace(default.motion_options, **changes))
     for name in args.variants:
         if name not in variants and name != "noop":
