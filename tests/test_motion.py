@@ -3,7 +3,8 @@ import pytest
 
 from tpscore import datasets
 from tpscore.motion import (BSplineLattice, MirroredMotion, MotionOptions, curvature_image,
-                           face_gradients, refine_landmark_motion, register_surfaces)
+                           face_gradients, refine_landmark_motion, refined_pair_trust,
+                           register_surfaces)
 from tpscore.normalise import FrameTransform
 from tpscore.preprocess import FaceGrid, resample_scan
 from tpscore.spatial import MeshSurface
@@ -182,6 +183,70 @@ def test_refined_pairs_keep_the_labelled_motion_along_a_flat_surface():
     field = register_surfaces(flat, grid.mask, landmarks, surface, landmarks + slide)
     moved = field(landmarks)
     assert np.allclose(moved[:, 0], 2.0, atol=0.25) and np.abs(moved[:, 2]).max() < 0.05
+
+
+def test_rest_weight_lets_an_unobserved_slide_fade_away_from_its_landmark():
+    # a flat face slid along itself with one labelled pair: nothing but the priors say
+    # how the rest of the face moves (the point-to-point pull, a prior of no slide, is
+    # off here so that the pull toward rest is seen on its own)
+    x, y = np.meshgrid(np.linspace(-60, 60, 91), np.linspace(-60, 60, 91))
+    flat = np.dstack([x, y, np.zeros_like(x)])
+    grid = FaceGrid.from_points(flat)
+    mesh = grid.mesh()
+    surface = MeshSurface(mesh.vertices, mesh.faces)
+    landmarks = np.full((22, 3), np.nan)
+    landmarks[0] = [0.0, 0.0, 0.0]
+    slide = np.array([2.0, 0.0, 0.0])
+    far = np.array([[50.0, 50.0, 0.0], [-50.0, 45.0, 0.0]])
+    carried = register_surfaces(flat, grid.mask, landmarks, surface, landmarks + slide,
+                                MotionOptions(tangential_weight=0.0, rest_weight=0.0))
+    faded = register_surfaces(flat, grid.mask, landmarks, surface, landmarks + slide,
+                              MotionOptions(tangential_weight=0.0, rest_weight=0.01))
+    # without the pull toward rest the bending energy carries the slide on
+    assert np.all(carried(far)[:, 0] > 1.2)
+    # with it the landmark keeps its motion, the face far from it comes to rest, and
+    # half way the motion is in between
+    assert faded(landmarks[:1])[0, 0] > 1.8
+    assert np.abs(faded(far)).max() < 0.2
+    assert 0.2 < faded(np.array([[20.0, 0.0, 0.0]]))[0, 0] < 1.5
+    with pytest.raises(ValueError, match="rest_weight"):
+        MotionOptions(rest_weight=-1.0)
+
+
+def _ridge(shift=(0.0, 0.0, 0.0)):
+    """A cylindrical ridge along x (radius 20 mm), optionally moved: its shape pins a
+    patch down across the ridge and along its normal, not along the ridge."""
+    x, y = np.meshgrid(np.linspace(-50, 50, 101), np.linspace(-16, 16, 33))
+    points = np.dstack([x, y, np.sqrt(20.0 ** 2 - y * y)]) + np.asarray(shift)
+    grid = FaceGrid.from_points(points)
+    mesh = grid.mesh()
+    return points, grid.mask, MeshSurface(mesh.vertices, mesh.faces)
+
+
+def test_refined_pairs_are_trusted_only_along_the_directions_their_patch_pins_down():
+    points, mask, _ = _ridge()
+    true_motion = np.array([2.0, 1.0, 0.0])
+    _, _, moved = _ridge(true_motion)
+    landmarks = np.full((22, 3), np.nan)
+    landmarks[0] = points[16, 50]                       # on the crest
+    # the label is off by 1.5 mm across the ridge and 0.6 mm along it
+    labelled = landmarks + true_motion + np.array([0.6, 1.5, 0.0])
+    refined, fit_rms, shape = refine_landmark_motion(points, mask, landmarks, moved, labelled,
+                                                     return_shape=True)
+    # the surface corrects the label across the ridge; along it nothing can
+    assert abs(refined[0, 1] - landmarks[0, 1] - 1.0) < 0.1
+    trust = refined_pair_trust(fit_rms, shape, 0.35)
+    along, across, normal = np.eye(3)
+    assert along @ trust[0] @ along < 0.05
+    assert across @ trust[0] @ across > 0.9 and normal @ trust[0] @ normal > 0.9
+    assert np.allclose(trust[0], trust[0].T) and np.all(trust[1:] == 0.0)
+    # a pair whose patch fits badly (it deforms) is not trusted in any direction
+    worse = refined_pair_trust(np.array([1.0]), shape[:1], 0.35)
+    assert np.abs(worse).max() < 1e-12
+    # the registration takes the ridge's correction across it and the label along it
+    field = register_surfaces(points, mask, landmarks, moved, labelled)
+    at = field(landmarks[:1])[0]
+    assert abs(at[1] - 1.0) < 0.25 and abs(at[0] - 2.6) < 0.3
 
 
 def _plane_points(x_min=-40.0, x_max=40.0):

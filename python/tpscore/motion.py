@@ -46,7 +46,7 @@ from .spatial import MeshSurface
 
 __all__ = ["MotionOptions", "DenseMotion", "BSplineLattice", "register_surfaces", "AdaptedMotion",
            "MirroredMotion", "adapt_motion", "curvature_image", "face_gradients",
-           "refine_landmark_motion"]
+           "refine_landmark_motion", "refined_pair_trust"]
 
 
 @dataclass(frozen=True)
@@ -105,6 +105,13 @@ class MotionOptions:
         metric, so that where the surface bulges or sinks (which the data measure) the
         skin slides along it as an inextensible sheet would, rather than only as smooth
         as the bending energy allows. Rigid motions cost nothing.
+    rest_weight : float
+        Weight of a pull of every control node's displacement toward zero, relative to
+        the bending energy's unit (0 = off): where neither the surfaces nor the
+        landmarks say how the skin slides (a smooth forehead above a raised brow), the
+        field fades away from the motion it is given instead of carrying it on unchanged.
+        The point-to-point pull does this only along the surface and per data point;
+        this pull also fades normal motion over holes.
     """
 
     spacing_mm: float = 8.0
@@ -123,6 +130,7 @@ class MotionOptions:
     refine_radius_mm: float = 10.0
     refined_landmark_weight: float = 10.0
     refine_max_rms_mm: float = 0.35
+    rest_weight: float = 0.01
 
     def __post_init__(self):
         for name in ("spacing_mm", "stiffness_start", "stiffness_end", "tukey_factor",
@@ -131,7 +139,7 @@ class MotionOptions:
             if not np.isfinite(value) or value <= 0:
                 raise ValueError(f"{name} must be finite and > 0, got {value!r}")
         for name in ("landmark_weight", "tangential_weight", "shape_weight", "membrane_weight",
-                     "refine_radius_mm", "refined_landmark_weight", "refine_max_rms_mm"):
+                     "refine_radius_mm", "refined_landmark_weight", "refine_max_rms_mm", "rest_weight"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:
                 raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
@@ -490,6 +498,41 @@ def refine_landmark_motion(neutral_points, neutral_mask, neutral_landmarks, expr
     return (refined, fit_rms, shape) if return_shape else (refined, fit_rms)
 
 
+def refined_pair_trust(fit_rms, shape, max_rms_mm: float) -> np.ndarray:
+    """How far each refined landmark pair is trusted, per direction.
+
+    A patch that fits with rms r leaves its shift along an eigendirection of its normal
+    matrix (eigenvalue l) uncertain by about r / sqrt(l). That direction is trusted
+    fully while the uncertainty is below ``max_rms_mm``, and not at all beyond twice it
+    (linear in between). Along the normal l is about 1, so the fit's rms itself decides;
+    along a flat brow or a ridge l is about 0, and the labelled pair keeps the say.
+
+    Parameters
+    ----------
+    fit_rms : (k,) ndarray
+        From :func:`refine_landmark_motion` (NaN where not refined).
+    shape : (k, 3, 3) ndarray
+        From :func:`refine_landmark_motion` with ``return_shape``.
+    max_rms_mm : float
+
+    Returns
+    -------
+    (k, 3, 3) ndarray
+        Symmetric matrices with eigenvalues in [0, 1]: T projects onto the trusted
+        directions (0 where the pair was not refined).
+    """
+    fit_rms = np.asarray(fit_rms, dtype=np.float64)
+    shape = np.asarray(shape, dtype=np.float64)
+    trust = np.zeros((len(fit_rms), 3, 3))
+    ok = np.isfinite(fit_rms) & np.isfinite(shape).all(axis=(1, 2))
+    if ok.any():
+        eigenvalues, vectors = np.linalg.eigh(shape[ok])
+        error = fit_rms[ok, None] / np.sqrt(np.maximum(eigenvalues, 1e-12))
+        c = np.clip(2.0 - error / max_rms_mm, 0.0, 1.0)
+        trust[ok] = np.einsum("kij,kj,klj->kil", vectors, c, vectors)
+    return trust
+
+
 def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressive_surface: MeshSurface,
                       expressive_landmarks, options: MotionOptions = MotionOptions(),
                       weight=None, expressive_curvature=None) -> DenseMotion:
@@ -541,19 +584,7 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     if options.refine_radius_mm > 0:
         refined, fit_rms, shape = refine_landmark_motion(points, mask, lm_from, expressive_surface, lm_to,
                                                          options.refine_radius_mm, return_shape=True)
-        # trust in a refined pair, per direction: a patch that fits with rms r leaves its
-        # shift along an eigendirection of its normal matrix (eigenvalue l) uncertain by
-        # about r / sqrt(l); trusted fully up to refine_max_rms_mm, fading to 0 at twice
-        # it (along the normal l ~ 1: the fit's rms itself). Directions the patch's shape
-        # does not pin down (along a flat brow, a ridge) keep the labelled pair.
-        ok = both & np.isfinite(fit_rms)
-        trust = np.zeros((len(lm_from), 3, 3))
-        if ok.any():
-            eigenvalues, vectors = np.linalg.eigh(shape[ok])
-            error = fit_rms[ok, None] / np.sqrt(np.maximum(eigenvalues, 1e-12))
-            c = np.clip(2.0 - error / options.refine_max_rms_mm, 0.0, 1.0)
-            trust[ok] = np.einsum("kij,kj,klj->kil", vectors, c, vectors)
-        trust = trust[both]
+        trust = refined_pair_trust(fit_rms, shape, options.refine_max_rms_mm)[both]
         eye = np.eye(3)[None]
         lm_weight = options.landmark_weight * (eye - trust) + options.refined_landmark_weight * trust
         lm_pull = np.einsum("kij,kj->ki", options.landmark_weight * (eye - trust), (lm_to - lm_from)[both]) \
@@ -584,7 +615,8 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         neutral_shape = neutral_curvature / unit
         gradient_of = face_gradients(expressive_surface.vertices, expressive_surface.faces, shape_of)
     values = np.zeros((n_nodes, 3))
-    ridge = 1e-8 * sp.identity(n_nodes, format="csr")
+    # a tiny ridge keeps nodes without data or bending coupling determined
+    ridge = (1e-8 + options.rest_weight) * sp.identity(n_nodes, format="csr")
     stiffness = np.geomspace(options.stiffness_start, options.stiffness_end, options.iterations)
     residual_rms, inliers = float("nan"), 0.0
     for alpha in stiffness:
