@@ -120,6 +120,7 @@ def main(argv=None) -> int:
         "thesis+anchors": replace(thesis, anchors=True),
         "default-fade-small": replace(default, still_motion_mm=0.5),
         "default-no-mirror": replace(default, mirror_average=False),
+        "default-upper-spill": replace(default, upper_spill=0.1),
         "adapt-field": replace(default, motion="adapt"),
         "default": default,
         # the registration's choices, each undone or added on its own
@@ -129,6 +130,8 @@ def main(argv=None) -> int:
             default.motion_options, shape_weight=1.0)),
         "default-membrane": replace(default, motion_options=replace(
             default.motion_options, membrane_weight=10.0)),
+        "default-no-rest": replace(default, motion_options=replace(
+            default.motion_options, rest_weight=0.0)),
         "registration-round-1": replace(default, motion_options=replace(
             default.motion_options, refine_radius_mm=0.0, iterations=6, tangential_weight=0.05)),
     }

@@ -255,3 +255,43 @@ def test_default_copes_with_holes_missing_landmarks_and_pose():
     assert np.sqrt(np.mean(np.sum(change ** 2, axis=1))) < 0.65 * size
     moved = np.linalg.norm((result.vertices - result.neutral)[gt.mask], axis=1)
     assert np.sqrt(np.mean(moved ** 2)) > 0.6 * size
+
+
+def test_upper_spill_keeps_strong_upper_face_motion_below_the_boundary():
+    from tpscore.expression_transfer import _spill
+    # a column of nine grid vertices, the top three in the upper region
+    valid = np.ones((9, 1), dtype=bool)
+    upper = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    sizes = np.array([10.0, 10.0, 10.0, 3.0, 1.5, 0.5, 0.0, 5.0, 5.0])
+    carried = np.column_stack([np.zeros(9), sizes, np.zeros(9)])
+    spilled = _spill(upper, carried, 0.1, valid)
+    # joined to the upper motion: 30 % of the peak kept, 15 % half way up the ramp,
+    # 5 % cut; the strong motion further down, apart from it, stays cut
+    assert np.allclose(spilled, [1.0, 1.0, 1.0, 1.0, 0.5, 0.0, 0.0, 0.0, 0.0])
+    assert np.array_equal(_spill(upper, np.zeros((9, 3)), 0.1, valid), upper)
+    with pytest.raises(ValueError, match="upper_spill"):
+        TransferOptions(upper_spill=-0.1)
+
+
+def test_upper_spill_moves_the_split_between_regions_not_the_total():
+    # one scan showing a brow raise and a smile: the two regions share its motion, so
+    # keeping upper-face motion below the boundary takes it from the lower region
+    scans = datasets.demo_triplet({"1": 1.0, "12": 1.0})
+    gs, ge, gt = (_grid(s) for s in scans)
+    cut = tpscore.transfer(gs, ge, gt, "1,12", options=TransferOptions(upper_spill=0.0)).animation
+    spilled = tpscore.transfer(gs, ge, gt, "1,12", options=TransferOptions(upper_spill=0.1)).animation
+    assert cut.labels == spilled.labels == ["AU1", "AU12"]
+    assert np.allclose(cut.displacement(1.0), spilled.displacement(1.0), atol=1e-9, equal_nan=True)
+    moved = np.abs(spilled.displacement({"AU1": 1.0, "AU12": 0.0})
+                   - cut.displacement({"AU1": 1.0, "AU12": 0.0}))
+    assert np.nanmax(moved) > 0.1
+
+
+def test_upper_spill_takes_no_lower_face_motion_apart_from_the_brows(smile):
+    # a brow AU asked of a smile scan: the smile's strong motion below the eyes does not
+    # join any motion above them, so the spill leaves the AU's field as the boundary cut it
+    _, (gs, ge, gt) = smile
+    cut = tpscore.transfer(gs, ge, gt, "1", options=TransferOptions(upper_spill=0.0))
+    spilled = tpscore.transfer(gs, ge, gt, "1", options=TransferOptions(upper_spill=0.1))
+    assert np.allclose(cut.animation.displacement(1.0), spilled.animation.displacement(1.0),
+                       atol=1e-12, equal_nan=True)

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field, replace
 from typing import Mapping, Sequence
 
 import numpy as np
+from scipy import ndimage
 
 from .action_units import ActionUnit, ActionUnitLibrary, Activation, default_library
 from .alignment import align_rigid, fit_mirror_symmetry
@@ -117,6 +118,15 @@ class TransferOptions:
     side_transition_mm : float
         Width of the smooth blend across the midline for one-sided AUs (``12L``) in
         the field animation.
+    upper_spill : float
+        In the field animation, the carried motion of upper-face AUs is kept below the
+        upper/lower boundary where it is at least this fraction of its peak (a smooth
+        ramp from this fraction to twice it; the peak is the 95th percentile of the
+        motion's size) and joins the motion above the boundary (one connected patch of
+        such vertices); 0 = the boundary cuts it (the default). The brow muscles
+        also move the skin of the nasal root and bridge, which lies below the eye
+        corners. Lower-face motion is not let over the boundary: the brows would then
+        take the registration's stray motion of every smile.
     mirror_average : bool
         For expressions that move both sides of the face (every AU without ``L`` or
         ``R``, and emotions), average the dense field with its mirror image across the
@@ -156,6 +166,7 @@ class TransferOptions:
     wendland_support_mm: float = 40.0
     transition_mm: float = 10.0
     side_transition_mm: float = 10.0
+    upper_spill: float = 0.0
     mirror_average: bool = True
     still_motion_mm: float = 0.0
     scale_lower_face: bool = False
@@ -172,7 +183,7 @@ class TransferOptions:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
         for name in ("anchor_distance_mm", "anchor_spacing_mm", "transition_mm",
                      "side_transition_mm", "still_motion_mm", "landmark_smoothing",
-                     "merge_landmarks_mm"):
+                     "merge_landmarks_mm", "upper_spill"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:
                 raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
@@ -583,6 +594,13 @@ def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
     by_region: dict[str, list[ControlPointMotion]] = {}
     for motion in model.motions:
         by_region.setdefault(motion.activation.action_unit.region, []).append(motion)
+    if carried is not None:
+        upper_flat = region_weight("upper", grid.points, target.landmarks,
+                                   options.transition_mm).ravel()[valid]
+        if "upper" in by_region and options.upper_spill > 0:
+            # one scan's motion is shared by its regions: the lower region gives up
+            # what the upper one keeps, so each point still takes the motion once
+            upper_flat = _spill(upper_flat, carried, options.upper_spill, grid.mask)
     labels, fields, controls, moved = [], [], [], []
     for region, motions in by_region.items():
         region_w = region_weight(region, grid.points, target.landmarks, options.transition_mm)
@@ -598,7 +616,8 @@ def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
                                                               target.landmarks,
                                                               options.side_transition_mm)
                             for m in motions], axis=0)
-            weight = (region_w * share).ravel()[valid]
+            region_flat = upper_flat if region == "upper" else 1.0 - upper_flat
+            weight = region_flat * np.broadcast_to(share, region_w.shape).ravel()[valid]
             field_flat[valid] = carried * (scale * weight[:, None])
         else:
             warp = _control_point_warp(target, control, displacement, region_w, options)
@@ -608,6 +627,29 @@ def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
         controls.append(control)
         moved.append(control + displacement)
     return Animation(target, labels, np.stack(fields), controls, moved)
+
+
+def _spill(upper_weight: np.ndarray, carried: np.ndarray, fraction: float,
+           valid: np.ndarray) -> np.ndarray:
+    """Raise the upper region's weight to 1 where the carried motion is strong and joins
+    the upper region's motion: at least ``fraction`` of the motion's peak over the face
+    (95th percentile of its size; a smooth ramp up to twice that), in a connected patch
+    of such grid vertices that reaches into the upper region."""
+    size = np.linalg.norm(carried, axis=1)
+    peak = float(np.percentile(size, 95)) if len(size) else 0.0
+    if not peak > 0:
+        return upper_weight
+    t = np.clip((size / peak - fraction) / fraction, 0.0, 1.0)
+    strong = np.zeros(valid.shape, dtype=bool)
+    strong[valid] = t > 0
+    labels, _ = ndimage.label(strong)
+    # patches of strong motion that reach the upper region continue its motion; a
+    # smile's strong motion below the eyes, apart from the brows', is not the brows'
+    upper = np.zeros(valid.shape)
+    upper[valid] = upper_weight
+    joined = np.unique(labels[(upper > 0.5) & strong])
+    keep = np.isin(labels[valid], joined[joined > 0])
+    return np.maximum(upper_weight, np.where(keep, t * t * (3.0 - 2.0 * t), 0.0))
 
 
 def _control_point_warp(target: NormalisedFace, control: np.ndarray, displacement: np.ndarray,
