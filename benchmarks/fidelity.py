@@ -120,7 +120,7 @@ def main(argv=None) -> int:
         "thesis+anchors": replace(thesis, anchors=True),
         "default-fade-small": replace(default, still_motion_mm=0.5),
         "default-no-mirror": replace(default, mirror_average=False),
-        "default-upper-spill": replace(default, upper_spill=0.1),
+        "default-no-spill": replace(default, upper_spill=0.0),
         "adapt-field": replace(default, motion="adapt"),
         "default": default,
         # the registration's choices, each undone or added on its own

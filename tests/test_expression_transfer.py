@@ -146,7 +146,9 @@ def test_magnitude_outside_unit_interval_warns(smile):
 @pytest.mark.parametrize("alignment", ["normalise", "rigid"])
 def test_aus_of_different_regions_add(smile, alignment):
     _, (gs, ge, gt) = smile
-    options = TransferOptions(alignment=alignment)
+    # the boundary alone splits the regions (the spill lets a brow AU take a little of
+    # what lies below it: see the spill's tests)
+    options = TransferOptions(alignment=alignment, upper_spill=0.0)
     a = tpscore.transfer(gs, ge, gt, "12", options=options).animation.displacement(1.0)
     b = tpscore.transfer(gs, ge, gt, "1", options=options).animation.displacement(1.0)
     ab = tpscore.transfer(gs, ge, gt, "12,1", options=options).animation.displacement(1.0)
@@ -269,6 +271,11 @@ def test_upper_spill_keeps_strong_upper_face_motion_below_the_boundary():
     # 5 % cut; the strong motion further down, apart from it, stays cut
     assert np.allclose(spilled, [1.0, 1.0, 1.0, 1.0, 0.5, 0.0, 0.0, 0.0, 0.0])
     assert np.array_equal(_spill(upper, np.zeros((9, 3)), 0.1, valid), upper)
+    # motion larger than the upper face's own (a smile's, seen from the brows) is not
+    # a continuation of it, and what lies beyond it is cut off with it
+    sizes[3] = 16.0
+    carried = np.column_stack([np.zeros(9), sizes, np.zeros(9)])
+    assert np.array_equal(_spill(upper, carried, 0.1, valid), upper)
     with pytest.raises(ValueError, match="upper_spill"):
         TransferOptions(upper_spill=-0.1)
 
@@ -288,10 +295,15 @@ def test_upper_spill_moves_the_split_between_regions_not_the_total():
 
 
 def test_upper_spill_takes_no_lower_face_motion_apart_from_the_brows(smile):
-    # a brow AU asked of a smile scan: the smile's strong motion below the eyes does not
-    # join any motion above them, so the spill leaves the AU's field as the boundary cut it
+    # a brow AU asked of a smile scan: below the eyes the spill may keep what continues
+    # the (small, stray) motion above them, never the smile itself
     _, (gs, ge, gt) = smile
     cut = tpscore.transfer(gs, ge, gt, "1", options=TransferOptions(upper_spill=0.0))
     spilled = tpscore.transfer(gs, ge, gt, "1", options=TransferOptions(upper_spill=0.1))
-    assert np.allclose(cut.animation.displacement(1.0), spilled.animation.displacement(1.0),
-                       atol=1e-12, equal_nan=True)
+    smile_peak = np.nanmax(np.linalg.norm(tpscore.transfer(gs, ge, gt, "12").animation.displacement(1.0),
+                                          axis=2))
+    cut_field = cut.animation.displacement(1.0)
+    added = np.nanmax(np.linalg.norm(spilled.animation.displacement(1.0) - cut_field, axis=2))
+    # measured: 0.19 mm added to a 0.19 mm brow field, against a 4 mm smile
+    assert added <= 1.5 * np.nanmax(np.linalg.norm(cut_field, axis=2))
+    assert added < 0.1 * smile_peak

@@ -120,12 +120,12 @@ class TransferOptions:
         the field animation.
     upper_spill : float
         In the field animation, the carried motion of upper-face AUs is kept below the
-        upper/lower boundary where it is at least this fraction of its peak (a smooth
-        ramp from this fraction to twice it; the peak is the 95th percentile of the
-        motion's size) and joins the motion above the boundary (one connected patch of
-        such vertices); 0 = the boundary cuts it (the default). The brow muscles
-        also move the skin of the nasal root and bridge, which lies below the eye
-        corners. Lower-face motion is not let over the boundary: the brows would then
+        upper/lower boundary where it continues the motion above it: at least this
+        fraction of the upper face's peak motion (95th percentile; a smooth ramp up
+        to twice the fraction), not more than the peak (ramping out by 1.5 times it),
+        and in one connected patch with the motion above the boundary; 0 = the
+        boundary cuts it. The brow muscles also move the skin of the nasal root and
+        bridge, which lies below the eye corners. Lower-face motion is not let over the boundary: the brows would then
         take the registration's stray motion of every smile.
     mirror_average : bool
         For expressions that move both sides of the face (every AU without ``L`` or
@@ -166,7 +166,7 @@ class TransferOptions:
     wendland_support_mm: float = 40.0
     transition_mm: float = 10.0
     side_transition_mm: float = 10.0
-    upper_spill: float = 0.0
+    upper_spill: float = 0.1
     mirror_average: bool = True
     still_motion_mm: float = 0.0
     scale_lower_face: bool = False
@@ -631,25 +631,32 @@ def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
 
 def _spill(upper_weight: np.ndarray, carried: np.ndarray, fraction: float,
            valid: np.ndarray) -> np.ndarray:
-    """Raise the upper region's weight to 1 where the carried motion is strong and joins
-    the upper region's motion: at least ``fraction`` of the motion's peak over the face
-    (95th percentile of its size; a smooth ramp up to twice that), in a connected patch
-    of such grid vertices that reaches into the upper region."""
+    """Raise the upper region's weight to 1 where the carried motion continues the upper
+    region's own motion below the boundary.
+
+    The peak is the 95th percentile of the motion's size inside the upper region. A
+    vertex below takes part when its motion is at least ``fraction`` of the peak (a
+    smooth ramp up to twice that), at most the peak (ramping out by 1.5 times it: a
+    continuation does not outgrow its source), and it lies in a connected patch of such
+    vertices that reaches into the upper region.
+    """
     size = np.linalg.norm(carried, axis=1)
-    peak = float(np.percentile(size, 95)) if len(size) else 0.0
+    inside = upper_weight > 0.5
+    peak = float(np.percentile(size[inside], 95)) if inside.any() else 0.0
     if not peak > 0:
         return upper_weight
-    t = np.clip((size / peak - fraction) / fraction, 0.0, 1.0)
-    strong = np.zeros(valid.shape, dtype=bool)
-    strong[valid] = t > 0
-    labels, _ = ndimage.label(strong)
-    # patches of strong motion that reach the upper region continue its motion; a
-    # smile's strong motion below the eyes, apart from the brows', is not the brows'
+    rise = np.clip((size / peak - fraction) / fraction, 0.0, 1.0)
+    fall = np.clip((1.5 - size / peak) / 0.5, 0.0, 1.0)
+    t = rise * rise * (3.0 - 2.0 * rise) * fall * fall * (3.0 - 2.0 * fall)
+    part = np.zeros(valid.shape, dtype=bool)
+    part[valid] = t > 0
+    labels, _ = ndimage.label(part)
+    # only patches that reach the upper region continue its motion
     upper = np.zeros(valid.shape)
     upper[valid] = upper_weight
-    joined = np.unique(labels[(upper > 0.5) & strong])
+    joined = np.unique(labels[(upper > 0.5) & part])
     keep = np.isin(labels[valid], joined[joined > 0])
-    return np.maximum(upper_weight, np.where(keep, t * t * (3.0 - 2.0 * t), 0.0))
+    return np.maximum(upper_weight, np.where(keep, t, 0.0))
 
 
 def _control_point_warp(target: NormalisedFace, control: np.ndarray, displacement: np.ndarray,
