@@ -169,14 +169,19 @@ def test_landmark_patch_shape_says_which_directions_it_pins_down():
     assert 1e-3 < np.linalg.eigvalsh(shape[0])[0] < 0.02
 
 
-def test_refined_pairs_keep_the_labelled_motion_along_a_flat_surface():
-    # a flat face moved along itself: the surface cannot say how far it slid, so the
-    # labelled motion decides along it, and the surface across it
+def _flat_face():
+    """A flat 120 mm square face in the z = 0 plane: its shape pins nothing along it."""
     x, y = np.meshgrid(np.linspace(-60, 60, 91), np.linspace(-60, 60, 91))
     flat = np.dstack([x, y, np.zeros_like(x)])
     grid = FaceGrid.from_points(flat)
     mesh = grid.mesh()
-    surface = MeshSurface(mesh.vertices, mesh.faces)
+    return flat, grid, MeshSurface(mesh.vertices, mesh.faces)
+
+
+def test_refined_pairs_keep_the_labelled_motion_along_a_flat_surface():
+    # a flat face moved along itself: the surface cannot say how far it slid, so the
+    # labelled motion decides along it, and the surface across it
+    flat, grid, surface = _flat_face()
     rng = np.random.default_rng(1)
     landmarks = np.column_stack([rng.uniform(-40, 40, (22, 2)), np.zeros(22)])
     slide = np.array([2.0, 0.0, 0.0])
@@ -189,11 +194,7 @@ def test_rest_weight_lets_an_unobserved_slide_fade_away_from_its_landmark():
     # a flat face slid along itself with one labelled pair: nothing but the priors say
     # how the rest of the face moves (the point-to-point pull, a prior of no slide, is
     # off here so that the pull toward rest is seen on its own)
-    x, y = np.meshgrid(np.linspace(-60, 60, 91), np.linspace(-60, 60, 91))
-    flat = np.dstack([x, y, np.zeros_like(x)])
-    grid = FaceGrid.from_points(flat)
-    mesh = grid.mesh()
-    surface = MeshSurface(mesh.vertices, mesh.faces)
+    flat, grid, surface = _flat_face()
     landmarks = np.full((22, 3), np.nan)
     landmarks[0] = [0.0, 0.0, 0.0]
     slide = np.array([2.0, 0.0, 0.0])
