@@ -86,6 +86,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .landmarks import LANDMARK_NAMES
+from .regions import smoothstep
 
 __all__ = [
     "FaceParameters",
@@ -238,7 +239,7 @@ class _Anatomy:
     # -- outline and base ellipsoid ------------------------------------------------
     def jaw_blend(self, y):
         """0 above the nose base, 1 at the chin and below: how jaw-like the width is."""
-        return _smoothstep(self.y_alar, self.y_chin, y)
+        return smoothstep(self.y_alar, self.y_chin, y)
 
     def outline_half_width(self, y):
         p = self.p
@@ -342,12 +343,6 @@ CHIN_RAISE = 2.0                 # chin bump centre above the chin middle landma
 CHIN_SPREAD = (13.0, 9.0)
 UNDER_CHIN_CURVATURE = 0.35      # how fast (1/mm) the surface turns under below the menton
 UNDER_CHIN_KNEE = 3.0
-
-
-def _smoothstep(edge0, edge1, value):
-    """0 before edge0, 1 after edge1, C1 cubic in between (edges may be decreasing)."""
-    t = np.clip((np.asarray(value, dtype=np.float64) - edge0) / (edge1 - edge0), 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
 
 
 def _gauss(x, y, cx, cy, sx, sy, sy_below=None):
@@ -563,7 +558,7 @@ def _side_window(side: str, x):
     """1 for both sides; for 'L'/'R' a smooth step across the midline (L + R == 1)."""
     if side == "":
         return 1.0
-    left = _smoothstep(-MIDLINE_RAMP_MM, MIDLINE_RAMP_MM, x)
+    left = smoothstep(-MIDLINE_RAMP_MM, MIDLINE_RAMP_MM, x)
     return left if side == "L" else 1.0 - left
 
 

@@ -48,7 +48,7 @@ from .motion import (AdaptedMotion, DenseMotion, MirroredMotion, MotionOptions, 
 from .normalise import FrameTransform, landmark_transform
 from .preprocess import FaceGrid
 from .rbf import TPS
-from .regions import region_weight, side_weight
+from .regions import region_weight, side_weight, smoothstep
 from .spatial import KDTree, MeshSurface
 
 __all__ = [
@@ -125,8 +125,9 @@ class TransferOptions:
         to twice the fraction), not more than the peak (ramping out by 1.5 times it),
         and in one connected patch with the motion above the boundary; 0 = the
         boundary cuts it. The brow muscles also move the skin of the nasal root and
-        bridge, which lies below the eye corners. Lower-face motion is not let over the boundary: the brows would then
-        take the registration's stray motion of every smile.
+        bridge, which lies below the eye corners. Lower-face motion is not let over the
+        boundary: the brows would then take the registration's stray motion of every
+        smile.
     mirror_average : bool
         For expressions that move both sides of the face (every AU without ``L`` or
         ``R``, and emotions), average the dense field with its mirror image across the
@@ -396,8 +397,7 @@ def _fade_small(displacement: np.ndarray, still_mm: float) -> np.ndarray:
     if still_mm <= 0:
         return displacement
     length = np.linalg.norm(displacement, axis=-1, keepdims=True)
-    t = np.clip(length / still_mm - 0.5, 0.0, 1.0)
-    return displacement * (t * t * (3.0 - 2.0 * t))
+    return displacement * smoothstep(0.5 * still_mm, 1.5 * still_mm, length)
 
 
 def model_expression(source_neutral: NormalisedFace, source_expressive: NormalisedFace,
@@ -603,7 +603,6 @@ def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
             upper_flat = _spill(upper_flat, carried, options.upper_spill, grid.mask)
     labels, fields, controls, moved = [], [], [], []
     for region, motions in by_region.items():
-        region_w = region_weight(region, grid.points, target.landmarks, options.transition_mm)
         neutral = np.vstack([m.neutral for m in motions])
         control = target.snap(to_target(neutral), options.snap)
         scale = lower_scale if region == "lower" else 1.0
@@ -617,9 +616,10 @@ def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
                                                               options.side_transition_mm)
                             for m in motions], axis=0)
             region_flat = upper_flat if region == "upper" else 1.0 - upper_flat
-            weight = region_flat * np.broadcast_to(share, region_w.shape).ravel()[valid]
+            weight = region_flat * np.broadcast_to(share, grid.mask.shape).ravel()[valid]
             field_flat[valid] = carried * (scale * weight[:, None])
         else:
+            region_w = region_weight(region, grid.points, target.landmarks, options.transition_mm)
             warp = _control_point_warp(target, control, displacement, region_w, options)
             field_flat[valid] = warp(flat[valid]) * region_w.ravel()[valid, None]
         labels.append("+".join(m.activation.label for m in motions))
@@ -645,17 +645,13 @@ def _spill(upper_weight: np.ndarray, carried: np.ndarray, fraction: float,
     peak = float(np.percentile(size[inside], 95)) if inside.any() else 0.0
     if not peak > 0:
         return upper_weight
-    rise = np.clip((size / peak - fraction) / fraction, 0.0, 1.0)
-    fall = np.clip((1.5 - size / peak) / 0.5, 0.0, 1.0)
-    t = rise * rise * (3.0 - 2.0 * rise) * fall * fall * (3.0 - 2.0 * fall)
+    t = smoothstep(fraction * peak, 2.0 * fraction * peak, size) * smoothstep(1.5 * peak, peak, size)
     part = np.zeros(valid.shape, dtype=bool)
     part[valid] = t > 0
-    labels, _ = ndimage.label(part)
+    labels = ndimage.label(part)[0][valid]
     # only patches that reach the upper region continue its motion
-    upper = np.zeros(valid.shape)
-    upper[valid] = upper_weight
-    joined = np.unique(labels[(upper > 0.5) & part])
-    keep = np.isin(labels[valid], joined[joined > 0])
+    joined = np.unique(labels[inside & (t > 0)])
+    keep = np.isin(labels, joined[joined > 0])
     return np.maximum(upper_weight, np.where(keep, t, 0.0))
 
 

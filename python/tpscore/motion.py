@@ -615,7 +615,8 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         neutral_shape = neutral_curvature / unit
         gradient_of = face_gradients(expressive_surface.vertices, expressive_surface.faces, shape_of)
     values = np.zeros((n_nodes, 3))
-    # a tiny ridge keeps nodes without data or bending coupling determined
+    # the pull toward rest, plus a tiny ridge that keeps nodes without data or bending
+    # coupling determined when the pull is off
     ridge = (1e-8 + options.rest_weight) * sp.identity(n_nodes, format="csr")
     stiffness = np.geomspace(options.stiffness_start, options.stiffness_end, options.iterations)
     residual_rms, inliers = float("nan"), 0.0

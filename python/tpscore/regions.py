@@ -17,7 +17,8 @@ import numpy as np
 
 from .landmarks import landmark_index
 
-__all__ = ["region_boundary", "upper_face_weight", "region_weight", "midline_x", "side_weight"]
+__all__ = ["region_boundary", "upper_face_weight", "region_weight", "midline_x", "side_weight",
+           "smoothstep"]
 
 _EYE_CORNERS = ("Outer left eye corner", "Inner left eye corner",
                 "Inner right eye corner", "Outer right eye corner")
@@ -27,6 +28,12 @@ _MIDLINE = ("Nose tip", "Upper lip outer middle", "Upper lip inner middle",
 _PAIRS = (("Inner left eye corner", "Inner right eye corner"),
           ("Outer left eye corner", "Outer right eye corner"),
           ("Left mouth corner", "Right mouth corner"))
+
+
+def smoothstep(edge0, edge1, value) -> np.ndarray:
+    """0 before edge0, 1 after edge1, C1 cubic in between (edges may be decreasing)."""
+    t = np.clip((np.asarray(value, dtype=np.float64) - edge0) / (edge1 - edge0), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
 
 
 def region_boundary(landmarks) -> tuple[float, float]:
@@ -58,8 +65,7 @@ def upper_face_weight(points, landmarks, transition_mm: float = 0.0) -> np.ndarr
     above = np.where(np.isfinite(above), above, -np.inf)
     if transition_mm <= 0:
         return (above > 0).astype(np.float64)
-    t = np.clip(above / transition_mm + 0.5, 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
+    return smoothstep(-0.5 * transition_mm, 0.5 * transition_mm, above)
 
 
 def region_weight(region: str, points, landmarks, transition_mm: float = 0.0) -> np.ndarray:
@@ -99,5 +105,4 @@ def side_weight(side: str | None, points, landmarks, transition_mm: float = 0.0)
     across = np.where(np.isfinite(across), across, -np.inf)
     if transition_mm <= 0:
         return (across > 0).astype(np.float64)
-    t = np.clip(across / transition_mm + 0.5, 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
+    return smoothstep(-0.5 * transition_mm, 0.5 * transition_mm, across)
