@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from tpscore import datasets
+from tpscore.landmarks import landmark_index
 from tpscore.motion import (BSplineLattice, MirroredMotion, MotionOptions, curvature_image,
                            face_gradients, refine_landmark_motion, refined_pair_trust,
                            register_surfaces)
@@ -137,6 +138,31 @@ def test_landmark_refinement_recovers_a_translation_from_noisy_pairs():
     # a patch whose shape is flat in some direction keeps at most the labelled error
     assert np.median(error) < 0.35 * np.median(raw_error)
     assert np.all(error < raw_error + 0.2)
+
+
+def test_landmark_patch_fit_ignores_a_hole_and_skips_a_patch_mostly_in_one():
+    # the expressive scan is the neutral one translated, with two holes: one cut into
+    # the patch of the nose tip (a quarter of it), one covering the patch of the chin
+    scan = datasets.make_face(datasets.random_identity(2), None, seed=3)
+    neutral = resample_scan(scan.points, scan.landmarks)
+    shift = np.array([0.5, 1.0, -0.3])
+    nose, chin = landmark_index("Nose tip"), landmark_index("Chin middle")
+    xy = neutral.points[..., :2]
+    beside_nose = neutral.landmarks[nose, :2] + np.array([6.0, 0.0])
+    hole = (np.linalg.norm(xy - beside_nose, axis=-1) < 5.0) \
+        | (np.linalg.norm(xy - neutral.landmarks[chin, :2], axis=-1) < 12.0)
+    keep = neutral.mask & ~hole
+    expressive = FaceGrid.from_points(np.where(keep[..., None], neutral.points + shift, np.nan))
+    mesh = expressive.mesh()
+    surface = MeshSurface(mesh.vertices, mesh.faces)
+    refined, fit_rms = refine_landmark_motion(neutral.points, neutral.mask, neutral.landmarks, surface,
+                                              neutral.landmarks + shift, radius_mm=10.0)
+    patch = neutral.mask & (np.linalg.norm(neutral.points - neutral.landmarks[nose], axis=-1) < 10.0)
+    assert 0.1 < (patch & hole).sum() / patch.sum() < 0.5
+    # the points over the hole (millimetres from the surface) do not count as misfit
+    assert fit_rms[nose] < 0.05
+    assert np.linalg.norm(refined[nose] - neutral.landmarks[nose] - shift) < 0.1
+    assert np.isnan(fit_rms[chin]) and np.isnan(refined[chin]).all()
 
 
 def test_landmark_patch_shape_says_which_directions_it_pins_down():

@@ -286,6 +286,13 @@ def _face_normals(surface: MeshSurface) -> np.ndarray:
     return n / np.where(length > 0, length, 1.0)[:, None]
 
 
+def _off_surface(along: np.ndarray, distances: np.ndarray) -> np.ndarray:
+    """Whether each closest point lies on the scan's outline or a hole's rim rather than
+    below the query point: the offset then leaves the surface sideways, not along its
+    normal (``along`` is the offset's normal component)."""
+    return np.abs(along) < 0.8 * distances - 0.05
+
+
 def _grid_spacing(points: np.ndarray, mask: np.ndarray) -> float:
     """Median distance between valid neighbours along the grid rows and columns (mm)."""
     edges = []
@@ -446,8 +453,10 @@ def refine_landmark_motion(neutral_points, neutral_mask, neutral_landmarks, expr
         The neutral landmark's corresponding point on the expressive surface (NaN
         where either landmark is missing).
     fit_rms_mm : (22,) ndarray
-        RMS distance of the moved patch to the expressive surface (NaN where not
-        refined); a patch that deforms, or straddles a hole, fits badly.
+        RMS distance of the moved patch to the expressive surface over the patch's
+        points that land on it (NaN where not refined); a patch that deforms fits
+        badly. Points over a hole or beyond the scan's outline do not count, and a
+        patch with fewer than half of its points on the surface is not refined.
     shape : (22, 3, 3) ndarray
         Only with ``return_shape``: the mean of n n^T over the patch's fitted points
         (NaN where not refined). A shift e along a unit direction v changes the
@@ -475,8 +484,7 @@ def refine_landmark_motion(neutral_points, neutral_mask, neutral_landmarks, expr
         closest = expressive_surface.closest_point(patch_points + shift[owner])
         normals = normals_of[closest.triangles]
         along = np.einsum("ij,ij->i", closest.points - patch_points - shift[owner], normals)
-        rim = np.abs(along) < 0.8 * closest.distances - 0.05
-        w = (~rim).astype(np.float64)
+        w = (~_off_surface(along, closest.distances)).astype(np.float64)
         outer = np.einsum("i,ij,ik->ijk", w, normals, normals)
         matrix = np.zeros((len(index), 3, 3))
         np.add.at(matrix, owner, outer)
@@ -487,11 +495,16 @@ def refine_landmark_motion(neutral_points, neutral_mask, neutral_landmarks, expr
         matrix += _REFINE_RIDGE * counts[:, None, None] * np.eye(3)
         shift = shift + np.linalg.solve(matrix, rhs[..., None])[..., 0]
     closest = expressive_surface.closest_point(patch_points + shift[owner])
-    sq = np.bincount(owner, weights=closest.distances ** 2, minlength=len(index))
-    n = np.bincount(owner, minlength=len(index))
-    fitted = n > 0
+    along = np.einsum("ij,ij->i", closest.points - patch_points - shift[owner], normals_of[closest.triangles])
+    # points over a hole or beyond the outline say nothing about how well the patch fits
+    # (eye and lip holes cut into most landmark patches); a patch mostly off the surface
+    # is not refined
+    on_surface = (~_off_surface(along, closest.distances)).astype(np.float64)
+    sq = np.bincount(owner, weights=on_surface * closest.distances ** 2, minlength=len(index))
+    n_on = np.bincount(owner, weights=on_surface, minlength=len(index))
+    fitted = (n_on > 0) & (n_on >= 0.5 * np.bincount(owner, minlength=len(index)))
     refined[index[fitted]] = lm_from[index[fitted]] + shift[fitted]
-    fit_rms[index[fitted]] = np.sqrt(sq[fitted] / n[fitted])
+    fit_rms[index[fitted]] = np.sqrt(sq[fitted] / n_on[fitted])
     # the last iteration's normal matrix without its ridge, per fitted point
     shape[index[fitted]] = (matrix[fitted] - _REFINE_RIDGE * counts[fitted, None, None] * np.eye(3)) \
         / np.maximum(np.bincount(owner, weights=w, minlength=len(index))[fitted], 1.0)[:, None, None]
@@ -626,9 +639,7 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         offset = moved - closest.points
         normals = normals_of[closest.triangles]
         along = np.einsum("ij,ij->i", offset, normals)
-        # a closest point on the outline or a hole's rim: the offset leaves the surface
-        # sideways, not along its normal
-        rim = np.abs(along) < 0.8 * closest.distances - 0.05
+        rim = _off_surface(along, closest.distances)
         scale = max(1.4826 * float(np.median(closest.distances[~rim])) if (~rim).any() else 1.0,
                     options.min_scale_mm)
         u = closest.distances / (options.tukey_factor * scale)
