@@ -14,8 +14,8 @@ field u(x, y) (the faces look toward +z, so a field over the x-y plane covers th
   on 16 nodes, so every system below is sparse;
 * **data**: a sample of the neutral vertices, moved by the field, is paired with its
   closest point on the expressive surface (exact, :class:`tpscore.MeshSurface`);
-  the pair pulls along the surface normal there (point-to-plane) and, weakly, toward
-  the point itself. Pairs are weighted by a Tukey biweight of their distance, and pairs
+  the pair pulls along the surface normal there (point-to-plane; optionally also toward
+  the point itself, ``tangential_weight``). Pairs are weighted by a Tukey biweight of their distance, and pairs
   whose closest point is on the scan's outline or a hole's rim (the offset is not
   along the normal) get weight 0, so holes and the parts one scan does not cover
   do not pull;
@@ -67,7 +67,11 @@ class MotionOptions:
     landmark_weight : float
         Weight of a landmark pair relative to one data point.
     tangential_weight : float
-        Weight of the point-to-point pull relative to the point-to-plane pull.
+        Weight of the point-to-point pull relative to the point-to-plane pull (0 = off,
+        the default). The pull draws every point toward its closest point, that is
+        toward no slide along the surface, which biases the slide the surfaces and
+        landmarks do show; the pull toward rest (``rest_weight``) already keeps the
+        field determined where they show none.
     tangential_decay : bool
         Let the point-to-point pull decrease with the stiffness: it steadies the first,
         stiff iterations, but it also pulls every point toward no slide along the
@@ -110,8 +114,9 @@ class MotionOptions:
         the bending energy's unit (0 = off): where neither the surfaces nor the
         landmarks say how the skin slides (a smooth forehead above a raised brow), the
         field fades away from the motion it is given instead of carrying it on unchanged.
-        The point-to-point pull does this only along the surface and per data point;
-        this pull also fades normal motion over holes.
+        The point-to-point pull (``tangential_weight``) holds each data point instead,
+        along the surface only, and so also where the surfaces do show a slide; this
+        pull also fades normal motion over holes.
     """
 
     spacing_mm: float = 8.0
@@ -120,7 +125,7 @@ class MotionOptions:
     stiffness_start: float = 100.0
     stiffness_end: float = 1.0
     landmark_weight: float = 3.0
-    tangential_weight: float = 0.02
+    tangential_weight: float = 0.0
     tangential_decay: bool = False
     tukey_factor: float = 3.0
     min_scale_mm: float = 0.5
