@@ -15,10 +15,10 @@ field u(x, y) (the faces look toward +z, so a field over the x-y plane covers th
 * **data**: a sample of the neutral vertices, moved by the field, is paired with its
   closest point on the expressive surface (exact, :class:`tpscore.MeshSurface`);
   the pair pulls along the surface normal there (point-to-plane; optionally also toward
-  the point itself, ``tangential_weight``). Pairs are weighted by a Tukey biweight of their distance, and pairs
-  whose closest point is on the scan's outline or a hole's rim (the offset is not
-  along the normal) get weight 0, so holes and the parts one scan does not cover
-  do not pull;
+  the point itself, ``tangential_weight``). Pairs are weighted by a Tukey biweight of
+  their distance, and pairs whose closest point is on the scan's outline or a hole's
+  rim (the offset is not along the normal) get weight 0, so holes and the parts one
+  scan does not cover do not pull;
 * **landmarks**: each landmark pair pulls its neutral landmark toward the expressive
   one with a weight that reflects their labelling noise (a soft constraint, so two
   noisy landmarks cannot fold the field). Before that, each pair is refined by
