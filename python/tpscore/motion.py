@@ -484,30 +484,35 @@ def refine_landmark_motion(neutral_points, neutral_mask, neutral_landmarks, expr
     owner = np.concatenate([np.full(len(p), i) for i, p in enumerate(patches)])
     patch_points = np.concatenate(patches) if len(owner) else np.zeros((0, 3))
     shift = (lm_to - lm_from)[index]
-    for _ in range(iterations):
-        # all patches in one closest-point query; one 3 x 3 solve per patch
+    n_points = np.bincount(owner, minlength=len(index))
+    counts = np.maximum(n_points, 1)
+
+    def contact(shift):
+        """Closest points of the shifted patches, their normals, the offsets' normal
+        components, and 1 for the points that land on the surface (0 over a hole)."""
         closest = expressive_surface.closest_point(patch_points + shift[owner])
         normals = normals_of[closest.triangles]
         along = np.einsum("ij,ij->i", closest.points - patch_points - shift[owner], normals)
-        w = (~_off_surface(along, closest.distances)).astype(np.float64)
+        return closest, normals, along, (~_off_surface(along, closest.distances)).astype(np.float64)
+
+    for _ in range(iterations):
+        # all patches in one closest-point query; one 3 x 3 solve per patch
+        _, normals, along, w = contact(shift)
         outer = np.einsum("i,ij,ik->ijk", w, normals, normals)
         matrix = np.zeros((len(index), 3, 3))
         np.add.at(matrix, owner, outer)
         rhs = np.zeros((len(index), 3))
         np.add.at(rhs, owner, (w * along)[:, None] * normals)
-        counts = np.maximum(np.bincount(owner, minlength=len(index)), 1)
         # a small ridge (per point) keeps directions the patch does not pin down
         matrix += _REFINE_RIDGE * counts[:, None, None] * np.eye(3)
         shift = shift + np.linalg.solve(matrix, rhs[..., None])[..., 0]
-    closest = expressive_surface.closest_point(patch_points + shift[owner])
-    along = np.einsum("ij,ij->i", closest.points - patch_points - shift[owner], normals_of[closest.triangles])
     # points over a hole or beyond the outline say nothing about how well the patch fits
     # (eye and lip holes cut into most landmark patches); a patch mostly off the surface
     # is not refined
-    on_surface = (~_off_surface(along, closest.distances)).astype(np.float64)
+    closest, _, _, on_surface = contact(shift)
     sq = np.bincount(owner, weights=on_surface * closest.distances ** 2, minlength=len(index))
     n_on = np.bincount(owner, weights=on_surface, minlength=len(index))
-    fitted = (n_on > 0) & (n_on >= 0.5 * np.bincount(owner, minlength=len(index)))
+    fitted = (n_on > 0) & (n_on >= 0.5 * n_points)
     refined[index[fitted]] = lm_from[index[fitted]] + shift[fitted]
     fit_rms[index[fitted]] = np.sqrt(sq[fitted] / n_on[fitted])
     # the last iteration's normal matrix without its ridge, per fitted point
