@@ -204,6 +204,33 @@ def _flat_face():
     return flat, grid, MeshSurface(mesh.vertices, mesh.faces)
 
 
+def test_a_loose_early_scale_bound_lets_a_block_motion_be_found():
+    # a disc of the flat face raised by 4 mm with steep sides (a chin pushed forward)
+    # and no landmark on it: most of the face is still, so the robust scale is its
+    # lower bound, and a tight bound at the first, stiff iterations cuts the disc's
+    # pairs off before the field comes near them
+    flat, grid, _ = _flat_face()
+    distance = np.hypot(flat[..., 0] - 25.0, flat[..., 1] + 25.0)
+    raised = flat.copy()
+    raised[..., 2] += 4.0 / (1.0 + np.exp(distance - 20.0))
+    mesh = FaceGrid.from_points(raised).mesh()
+    surface = MeshSurface(mesh.vertices, mesh.faces)
+    landmarks = np.full((22, 3), np.nan)
+    landmarks[0] = [-30.0, 30.0, 0.0]
+    centre = np.array([[25.0, -25.0, 0.0]])
+
+    def lift(start):
+        field = register_surfaces(flat, grid.mask, landmarks, surface, landmarks,
+                                  MotionOptions(min_scale_start_mm=start))
+        return field(centre)[0, 2]
+
+    constant, default, loose = lift(0.0), lift(MotionOptions().min_scale_start_mm), lift(2.0)
+    assert constant < 2.5 and loose > 3.5
+    assert constant < default < loose
+    with pytest.raises(ValueError, match="min_scale_start_mm"):
+        MotionOptions(min_scale_start_mm=-1.0)
+
+
 def test_refined_pairs_keep_the_labelled_motion_along_a_flat_surface():
     # a flat face moved along itself: the surface cannot say how far it slid, so the
     # labelled motion decides along it, and the surface across it

@@ -79,7 +79,14 @@ class MotionOptions:
     tukey_factor : float
         Pairs farther than this many times the robust scale get weight 0.
     min_scale_mm : float
-        Lower bound of the robust scale (about the scanner noise).
+        Lower bound of the robust scale (about the scanner noise) at the last iteration.
+    min_scale_start_mm : float
+        Lower bound of the robust scale at the first iteration, decreasing geometrically
+        to ``min_scale_mm`` at the last like the stiffness (0 = ``min_scale_mm``
+        throughout). When most of the face is still, the scale is the bound; a tight
+        bound early cuts off the pairs of a region that moves by a few mm as a block
+        (the chin under AU17) before the stiff field has come near them, and a loose
+        one late lets noise and stray pairs pull.
     shape_weight : float
         Weight of the shape-matching term (0 = off): each data point pulls along the
         surface toward where the expressive surface's curvature equals the neutral
@@ -129,6 +136,7 @@ class MotionOptions:
     tangential_decay: bool = False
     tukey_factor: float = 3.0
     min_scale_mm: float = 0.5
+    min_scale_start_mm: float = 1.0
     shape_weight: float = 0.0
     shape_sigma_mm: float = 2.5
     membrane_weight: float = 0.0
@@ -144,7 +152,8 @@ class MotionOptions:
             if not np.isfinite(value) or value <= 0:
                 raise ValueError(f"{name} must be finite and > 0, got {value!r}")
         for name in ("landmark_weight", "tangential_weight", "shape_weight", "membrane_weight",
-                     "refine_radius_mm", "refined_landmark_weight", "refine_max_rms_mm", "rest_weight"):
+                     "refine_radius_mm", "refined_landmark_weight", "refine_max_rms_mm", "rest_weight",
+                     "min_scale_start_mm"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:
                 raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
@@ -642,8 +651,10 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     # coupling determined when the pull is off
     ridge = (1e-8 + options.rest_weight) * sp.identity(n_nodes, format="csr")
     stiffness = np.geomspace(options.stiffness_start, options.stiffness_end, options.iterations)
+    start = options.min_scale_start_mm if options.min_scale_start_mm > 0 else options.min_scale_mm
+    floors = np.geomspace(start, options.min_scale_mm, options.iterations)
     residual_rms, inliers = float("nan"), 0.0
-    for alpha in stiffness:
+    for alpha, floor in zip(stiffness, floors):
         moved = sample + basis @ values
         closest = expressive_surface.closest_point(moved)
         offset = moved - closest.points
@@ -651,7 +662,7 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         along = np.einsum("ij,ij->i", offset, normals)
         rim = _off_surface(along, closest.distances)
         scale = max(1.4826 * float(np.median(closest.distances[~rim])) if (~rim).any() else 1.0,
-                    options.min_scale_mm)
+                    floor)
         u = closest.distances / (options.tukey_factor * scale)
         w = np.where((u < 1.0) & ~rim, (1.0 - u * u) ** 2, 0.0) * prior
         inliers = float(np.mean(w > 0))
