@@ -124,6 +124,14 @@ class MotionOptions:
         The point-to-point pull (``tangential_weight``) holds each data point instead,
         along the surface only, and so also where the surfaces do show a slide; this
         pull also fades normal motion over holes.
+    rest_shape_ratio : float
+        Let the pull toward rest give way where the neutral surface's own shape shows
+        the slide (0 = the same pull everywhere): a node's pull is scaled by
+        exp(-r / rest_shape_ratio), where r is the ratio of the second to the largest
+        eigenvalue of the node's normal matrix (its data points' normals, weighted by
+        the squared B-spline weights). A flat patch (forehead, cheek) has r near 0
+        and keeps the whole pull; lips, nose and chin, whose normals turn, are left to
+        the data and the landmarks.
     """
 
     spacing_mm: float = 8.0
@@ -144,6 +152,7 @@ class MotionOptions:
     refined_landmark_weight: float = 10.0
     refine_max_rms_mm: float = 0.35
     rest_weight: float = 0.01
+    rest_shape_ratio: float = 0.1
 
     def __post_init__(self):
         for name in ("spacing_mm", "stiffness_start", "stiffness_end", "tukey_factor",
@@ -153,7 +162,7 @@ class MotionOptions:
                 raise ValueError(f"{name} must be finite and > 0, got {value!r}")
         for name in ("landmark_weight", "tangential_weight", "shape_weight", "membrane_weight",
                      "refine_radius_mm", "refined_landmark_weight", "refine_max_rms_mm", "rest_weight",
-                     "min_scale_start_mm"):
+                     "min_scale_start_mm", "rest_shape_ratio"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:
                 raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
@@ -437,6 +446,25 @@ def _membrane_energy(lattice: BSplineLattice, points: np.ndarray, mask: np.ndarr
 _REFINE_RIDGE = 0.03
 
 
+def rest_pull_per_node(lattice: BSplineLattice, points, sample_mask, rest_weight: float,
+                       shape_ratio: float) -> np.ndarray:
+    """The pull toward rest of each control node (see ``MotionOptions.rest_shape_ratio``)."""
+    if shape_ratio <= 0:
+        return np.full(lattice.n_nodes, rest_weight)
+    # grid normals from the row and column tangents; an orientation does not matter
+    # for n n^T, and a normal next to a hole (NaN) counts as no information
+    normals = np.cross(np.gradient(points, axis=1), np.gradient(points, axis=0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    normals = np.nan_to_num(normals[sample_mask])
+    squared = lattice.basis(points[sample_mask][:, :2]).power(2).T.tocsr()
+    matrix = np.stack([squared @ (normals[:, a] * normals[:, b]) for a in range(3) for b in range(3)],
+                      axis=1).reshape(-1, 3, 3)
+    eigenvalues = np.linalg.eigvalsh(matrix)
+    ratio = eigenvalues[:, 1] / np.maximum(eigenvalues[:, 2], 1e-12)
+    return rest_weight * np.exp(-ratio / shape_ratio)
+
+
 def refine_landmark_motion(neutral_points, neutral_mask, neutral_landmarks, expressive_surface: MeshSurface,
                            expressive_landmarks, radius_mm: float = 10.0, iterations: int = 8,
                            return_shape: bool = False):
@@ -649,7 +677,8 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     values = np.zeros((n_nodes, 3))
     # the pull toward rest, plus a tiny ridge that keeps nodes without data or bending
     # coupling determined when the pull is off
-    ridge = (1e-8 + options.rest_weight) * sp.identity(n_nodes, format="csr")
+    rest = rest_pull_per_node(lattice, points, sample_mask, options.rest_weight, options.rest_shape_ratio)
+    ridge = sp.diags(1e-8 + rest, format="csr")
     stiffness = np.geomspace(options.stiffness_start, options.stiffness_end, options.iterations)
     start = options.min_scale_start_mm if options.min_scale_start_mm > 0 else options.min_scale_mm
     floors = np.geomspace(start, options.min_scale_mm, options.iterations)
