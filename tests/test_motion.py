@@ -5,7 +5,7 @@ from tpscore import datasets
 from tpscore.landmarks import landmark_index
 from tpscore.motion import (BSplineLattice, MirroredMotion, MotionOptions, curvature_image,
                            face_gradients, refine_landmark_motion, refined_pair_trust,
-                           register_surfaces, rest_pull_per_node)
+                           grid_normals, register_surfaces, rest_pull_per_node)
 from tpscore.normalise import FrameTransform
 from tpscore.preprocess import FaceGrid, resample_scan
 from tpscore.spatial import MeshSurface
@@ -240,14 +240,15 @@ def test_the_pull_toward_rest_gives_way_where_the_surface_has_shape():
     bumped[40:45, 60:70] = np.nan  # a hole: its points say nothing
     mask = np.isfinite(bumped).all(axis=-1)
     lattice = BSplineLattice([-60.0, -60.0], [60.0, 60.0], 8.0)
-    pull = rest_pull_per_node(lattice, bumped, mask, 0.01, 0.1)
+    basis, normals = lattice.basis(bumped[mask][:, :2]), grid_normals(bumped)[mask]
+    pull = rest_pull_per_node(basis, normals, 0.01, 0.1)
     rows, cols = np.mgrid[0:lattice.shape[0], 0:lattice.shape[1]]
     nodes = lattice.origin + lattice.spacing * np.stack([cols.ravel(), rows.ravel()], axis=1)
     radius = np.hypot(*nodes.T)
     assert np.all(np.isfinite(pull)) and np.all((pull > 0) & (pull <= 0.01 + 1e-15))
     assert np.allclose(pull[(radius > 40) & (radius < 55)], 0.01, rtol=0.02)
     assert pull[radius < 12].max() < 0.3 * 0.01
-    assert np.all(rest_pull_per_node(lattice, bumped, mask, 0.01, 0.0) == 0.01)
+    assert np.all(rest_pull_per_node(basis, normals, 0.01, 0.0) == 0.01)
     with pytest.raises(ValueError, match="rest_shape_ratio"):
         MotionOptions(rest_shape_ratio=-0.1)
 

@@ -446,18 +446,24 @@ def _membrane_energy(lattice: BSplineLattice, points: np.ndarray, mask: np.ndarr
 _REFINE_RIDGE = 0.03
 
 
-def rest_pull_per_node(lattice: BSplineLattice, points, sample_mask, rest_weight: float,
-                       shape_ratio: float) -> np.ndarray:
-    """The pull toward rest of each control node (see ``MotionOptions.rest_shape_ratio``)."""
-    if shape_ratio <= 0:
-        return np.full(lattice.n_nodes, rest_weight)
-    # grid normals from the row and column tangents; an orientation does not matter
-    # for n n^T, and a normal next to a hole (NaN) counts as no information
+def grid_normals(points) -> np.ndarray:
+    """Unit normals of an (H, W, 3) grid from its row and column tangents (0 where a
+    neighbour is missing); their orientation follows the grid's rows and columns."""
     normals = np.cross(np.gradient(points, axis=1), np.gradient(points, axis=0))
     with np.errstate(invalid="ignore", divide="ignore"):
         normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    normals = np.nan_to_num(normals[sample_mask])
-    squared = lattice.basis(points[sample_mask][:, :2]).power(2).T.tocsr()
+    return np.nan_to_num(normals)
+
+
+def rest_pull_per_node(basis: sp.csr_matrix, normals, rest_weight: float, shape_ratio: float) -> np.ndarray:
+    """The pull toward rest of each control node (see ``MotionOptions.rest_shape_ratio``),
+    from the data points' B-spline weights ``basis`` (points x nodes) and unit normals
+    (0 where unknown: no information)."""
+    if shape_ratio <= 0:
+        return np.full(basis.shape[1], rest_weight)
+    normals = np.asarray(normals, dtype=np.float64)
+    squared = basis.power(2).T.tocsr()
+    # each node's normal matrix; its orientation does not matter for n n^T
     matrix = np.stack([squared @ (normals[:, a] * normals[:, b]) for a in range(3) for b in range(3)],
                       axis=1).reshape(-1, 3, 3)
     eigenvalues = np.linalg.eigvalsh(matrix)
@@ -677,7 +683,8 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     values = np.zeros((n_nodes, 3))
     # the pull toward rest, plus a tiny ridge that keeps nodes without data or bending
     # coupling determined when the pull is off
-    rest = rest_pull_per_node(lattice, points, sample_mask, options.rest_weight, options.rest_shape_ratio)
+    rest = rest_pull_per_node(basis, grid_normals(points)[sample_mask], options.rest_weight,
+                              options.rest_shape_ratio)
     ridge = sp.diags(1e-8 + rest, format="csr")
     stiffness = np.geomspace(options.stiffness_start, options.stiffness_end, options.iterations)
     start = options.min_scale_start_mm if options.min_scale_start_mm > 0 else options.min_scale_mm
