@@ -11,14 +11,19 @@ from tpscore.preprocess import FaceGrid, resample_scan
 from tpscore.spatial import MeshSurface
 
 
+def _node_positions(lattice):
+    """(n_nodes, 2) x-y positions of a lattice's nodes, in the order of its node values."""
+    rows, cols = np.mgrid[0:lattice.shape[0], 0:lattice.shape[1]]
+    return lattice.origin + lattice.spacing * np.stack([cols.ravel(), rows.ravel()], axis=1)
+
+
 def test_bspline_lattice_is_a_partition_of_unity_and_reproduces_affine_fields():
     lattice = BSplineLattice([-40.0, -60.0], [45.0, 50.0], 7.0)
     rng = np.random.default_rng(2)
     xy = rng.uniform([-40, -60], [45, 50], size=(500, 2))
     basis = lattice.basis(xy)
     assert np.allclose(basis.sum(axis=1), 1.0, atol=1e-12)  # weights of a point sum to 1
-    rows, cols = np.mgrid[0:lattice.shape[0], 0:lattice.shape[1]]
-    nodes = lattice.origin + lattice.spacing * np.stack([cols.ravel(), rows.ravel()], axis=1)
+    nodes = _node_positions(lattice)
     affine = 2.0 + 0.3 * nodes[:, 0] - 0.7 * nodes[:, 1]
     # cubic B-splines reproduce polynomials of degree 1 from their node values exactly
     assert np.allclose(basis @ affine, 2.0 + 0.3 * xy[:, 0] - 0.7 * xy[:, 1], atol=1e-10)
@@ -242,8 +247,7 @@ def test_the_pull_toward_rest_gives_way_where_the_surface_has_shape():
     lattice = BSplineLattice([-60.0, -60.0], [60.0, 60.0], 8.0)
     basis, normals = lattice.basis(bumped[mask][:, :2]), grid_normals(bumped)[mask]
     pull = rest_pull_per_node(basis, normals, 0.01, 0.1)
-    rows, cols = np.mgrid[0:lattice.shape[0], 0:lattice.shape[1]]
-    nodes = lattice.origin + lattice.spacing * np.stack([cols.ravel(), rows.ravel()], axis=1)
+    nodes = _node_positions(lattice)
     radius = np.hypot(*nodes.T)
     assert np.all(np.isfinite(pull)) and np.all((pull > 0) & (pull <= 0.01 + 1e-15))
     assert np.allclose(pull[(radius > 40) & (radius < 55)], 0.01, rtol=0.02)
