@@ -458,7 +458,8 @@ def grid_normals(points) -> np.ndarray:
 def rest_pull_per_node(basis: sp.csr_matrix, normals, rest_weight: float, shape_ratio: float) -> np.ndarray:
     """The pull toward rest of each control node (see ``MotionOptions.rest_shape_ratio``),
     from the data points' B-spline weights ``basis`` (points x nodes) and unit normals
-    (0 where unknown: no information)."""
+    (0 where unknown: no information; not read, and may be None, when ``shape_ratio``
+    is 0)."""
     if shape_ratio <= 0:
         return np.full(basis.shape[1], rest_weight)
     normals = np.asarray(normals, dtype=np.float64)
@@ -683,8 +684,9 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     values = np.zeros((n_nodes, 3))
     # the pull toward rest, plus a tiny ridge that keeps nodes without data or bending
     # coupling determined when the pull is off
-    rest = rest_pull_per_node(basis, grid_normals(points)[sample_mask], options.rest_weight,
-                              options.rest_shape_ratio)
+    # the grid's normals matter only to a shape-dependent pull
+    data_normals = grid_normals(points)[sample_mask] if options.rest_shape_ratio > 0 else None
+    rest = rest_pull_per_node(basis, data_normals, options.rest_weight, options.rest_shape_ratio)
     ridge = sp.diags(1e-8 + rest, format="csr")
     stiffness = np.geomspace(options.stiffness_start, options.stiffness_end, options.iterations)
     start = options.min_scale_start_mm if options.min_scale_start_mm > 0 else options.min_scale_mm
