@@ -165,3 +165,72 @@ def test_bad_rhs_raise_clear_errors():
         solver.solve(np.full(9, np.nan))
     with pytest.raises(ValueError, match="rhs must be numeric"):
         solver.solve(["a"] * 9)
+
+
+# --- PatternCholesky: one pattern, many factorisations -------------------------------
+
+def lower_pattern(matrix):
+    lower = sp.tril(sp.csc_matrix(matrix), format="csc")
+    lower.sort_indices()
+    return lower
+
+
+def test_pattern_cholesky_refactorises_with_new_values_like_a_fresh_factor():
+    matrix = random_spd(300, 0.01, seed=4)
+    lower = lower_pattern(matrix)
+    factor = tpscore.PatternCholesky(lower.indptr, lower.indices)
+    rng = np.random.default_rng(5)
+    rhs = rng.normal(size=(300, 3))
+    for trial in range(3):
+        # new values on the same pattern: a positive multiple plus a new diagonal
+        values = lower.copy()
+        values.data = lower.data * rng.uniform(0.5, 2.0, size=lower.nnz)
+        values = values + sp.diags(rng.uniform(5.0, 10.0, 300), format="csc")
+        values = lower_pattern(values)
+        assert np.array_equal(values.indices, lower.indices)
+        factor.factorise(values.data)
+        full = values + sp.tril(values, -1).T
+        expected = reference.sparse_solve(full, rhs)
+        assert relative_error(factor.solve(rhs), expected) < 1e-10
+        assert relative_error(SparseCholesky(full).solve(rhs), expected) < 1e-10
+
+
+def test_pattern_cholesky_keeps_explicit_zeros_of_the_pattern():
+    # the pattern couples 0 and 2; the first matrix has 0 there, the second does not
+    indptr, indices = [0, 2, 3, 4], [0, 2, 1, 2]
+    factor = tpscore.PatternCholesky(indptr, indices)
+    factor.factorise([2.0, 0.0, 2.0, 2.0])
+    assert np.allclose(factor.solve([2.0, 2.0, 2.0]), [1.0, 1.0, 1.0])
+    factor.factorise([2.0, 1.0, 2.0, 2.0])
+    dense = np.array([[2.0, 0.0, 1.0], [0.0, 2.0, 0.0], [1.0, 0.0, 2.0]])
+    assert np.allclose(factor.solve([1.0, 2.0, 3.0]), np.linalg.solve(dense, [1.0, 2.0, 3.0]))
+
+
+@pytest.mark.parametrize("indptr, indices, message", [
+    ([1, 2], [0], "start with 0"),
+    ([0, 2, 1], [0, 1], "nondecreasing"),
+    ([0, 1, 2], [0, 0], "above its column"),
+    ([0, 2, 3], [1, 0, 1], "strictly increasing"),
+    ([0, 1, 2], [0, 2], r"\[0, 2\)"),
+    ([0.0, 1.0], [0], "integer"),
+])
+def test_pattern_cholesky_rejects_malformed_patterns(indptr, indices, message):
+    with pytest.raises(ValueError, match=message):
+        tpscore.PatternCholesky(indptr, indices)
+
+
+def test_pattern_cholesky_diagnoses_bad_values_and_keeps_no_factor_after_a_failure():
+    factor = tpscore.PatternCholesky([0, 2, 3], [0, 1, 1])
+    with pytest.raises(ValueError, match="factorise"):
+        factor.solve([1.0, 1.0])
+    with pytest.raises(ValueError, match=r"shape \(3,\)"):
+        factor.factorise([1.0, 2.0])
+    with pytest.raises(ValueError, match="NaN|finite"):
+        factor.factorise([1.0, np.nan, 1.0])
+    factor.factorise([2.0, 1.0, 2.0])
+    assert factor.factorised
+    with pytest.raises(ValueError, match="positive definite"):
+        factor.factorise([1.0, 2.0, 1.0])        # eigenvalues 3 and -1
+    assert not factor.factorised
+    with pytest.raises(ValueError, match="factorise"):
+        factor.solve([1.0, 1.0])

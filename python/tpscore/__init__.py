@@ -53,7 +53,7 @@ from .muscles import LinearMuscle, MuscleModel, SphincterMuscle
 from .normalise import FrameTransform, similarity_transform, thesis_affine_transform
 from .preprocess import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, resample_scan
 from .rbf import RBF, RBF_KERNELS, TPS
-from .sparse import SparseCholesky
+from .sparse import PatternCholesky, SparseCholesky
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
 
 __version__ = "0.1.0"
@@ -141,6 +141,7 @@ __all__ = [
     "vertex_normals",
     "voronoi_areas",
     # sparse direct solve
+    "PatternCholesky",
     "SparseCholesky",
     # elastic expression model
     "ElasticFace",

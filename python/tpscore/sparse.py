@@ -3,7 +3,9 @@
 The elastic face model solves the same bi-Laplacian system for one right-hand side
 per control point; factorising once and reusing the factor is what makes its basis
 cheap. :class:`SparseCholesky` wraps the compiled LDL^T factorisation (Eigen's
-SimplicialLDLT with an approximate-minimum-degree ordering).
+SimplicialLDLT with an approximate-minimum-degree ordering). :class:`PatternCholesky`
+factorises a sequence of matrices that share one sparsity pattern, analysing the
+pattern once (the iterations of the dense registration in :mod:`tpscore.motion`).
 """
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ import scipy.sparse as sp
 from . import _core
 from ._validation import check_finite
 
-__all__ = ["SparseCholesky"]
+__all__ = ["PatternCholesky", "SparseCholesky"]
 
 # A pivot of D at or below this fraction of the largest pivot means the matrix is
 # singular or indefinite to working precision: with ~1e-16 rounding per operation, a
@@ -126,19 +128,135 @@ class SparseCholesky:
         ndarray, shape (n,) or (n, k)
             The solution, in the shape of ``rhs``, C-contiguous float64.
         """
+        return _solve(self._factor, self._n, rhs)
+
+
+def _solve(factor, n: int, rhs) -> np.ndarray:
+    """Validate ``rhs`` ((n,) or (n, k), finite) and solve with a compiled factor."""
+    try:
+        array = np.asarray(rhs, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"rhs must be numeric: {exc}") from None
+    vector = array.ndim == 1
+    if vector:
+        array = array[:, None]
+    if array.ndim != 2 or array.shape[0] != n:
+        raise ValueError(f"rhs must have shape ({n},) or ({n}, k), got {np.shape(rhs)}")
+    check_finite(array, "rhs")
+    if array.shape[1] == 0 or n == 0:
+        solution = np.zeros(array.shape)
+    else:
+        # Fortran order lets the core read each column in place.
+        solution = np.ascontiguousarray(factor.solve(np.asfortranarray(array)))
+    return solution[:, 0] if vector else solution
+
+
+class PatternCholesky:
+    """Symmetric positive-definite matrices with one sparsity pattern, factorised in turn.
+
+    An iterative fit often solves a linear system whose values change from one
+    iteration to the next while its structure does not. The fill-reducing
+    (approximate-minimum-degree) ordering and the symbolic analysis depend on the
+    structure only, so they are computed once, here; each :meth:`factorise` computes
+    only the numeric L D L^T factor. The values arrive as a plain array in the order
+    of the pattern's entries, with no sparse-matrix conversion or symmetry check:
+    the caller owns the pattern and fills it.
+
+    Parameters
+    ----------
+    indptr, indices : array_like of int
+        The pattern of the LOWER triangle (diagonal included) in compressed-sparse-
+        column form: column j holds the rows ``indices[indptr[j]:indptr[j + 1]]``,
+        strictly increasing and all >= j. The order is n = len(indptr) - 1.
+
+    Raises
+    ------
+    ValueError
+        If the arrays do not describe such a pattern.
+
+    Examples
+    --------
+    >>> pattern = PatternCholesky([0, 2, 4, 5], [0, 1, 1, 2, 2])
+    >>> pattern.factorise([2.0, -1.0, 2.0, -1.0, 2.0])
+    >>> pattern.solve([1.0, 0.0, 1.0])
+    array([1., 1., 1.])
+    >>> pattern.factorise([4.0, 0.0, 4.0, 0.0, 4.0])
+    >>> pattern.solve([1.0, 0.0, 1.0])
+    array([0.25, 0.  , 0.25])
+    """
+
+    def __init__(self, indptr, indices):
+        indptr = np.asarray(indptr)
+        indices = np.asarray(indices)
+        for name, array in (("indptr", indptr), ("indices", indices)):
+            if array.ndim != 1 or not (np.issubdtype(array.dtype, np.integer) or array.size == 0):
+                raise ValueError(f"{name} must be a 1-D integer array, got shape {array.shape} "
+                                 f"and dtype {array.dtype}")
+        if len(indptr) == 0 or indptr[0] != 0:
+            raise ValueError("indptr must start with 0")
+        n = len(indptr) - 1
+        if np.any(np.diff(indptr) < 0) or indptr[-1] != len(indices):
+            raise ValueError(f"indptr must be nondecreasing and end at len(indices) = {len(indices)}, "
+                             f"ends at {indptr[-1]}")
+        if len(indices) >= 2**31 - 1:
+            raise ValueError(f"the pattern has {len(indices)} entries; the limit is 2^31 - 1")
+        columns = np.repeat(np.arange(n), np.diff(indptr))
+        if len(indices) and (indices.min() < 0 or indices.max() >= n):
+            raise ValueError(f"indices must lie in [0, {n})")
+        if np.any(indices < columns):
+            raise ValueError("the pattern must be the lower triangle: a row index lies above its column")
+        same_column = columns[1:] == columns[:-1]
+        if np.any(same_column & (np.diff(indices) <= 0)):
+            raise ValueError("row indices must be strictly increasing within each column")
+        self._n = n
+        self._entries = len(indices)
+        self._factor = _core.PatternCholesky(n, np.ascontiguousarray(indptr, dtype=np.int64),
+                                             np.ascontiguousarray(indices, dtype=np.int64))
+
+    @property
+    def n(self) -> int:
+        """Order of the matrices."""
+        return self._n
+
+    @property
+    def entries(self) -> int:
+        """Stored entries of the pattern (the length :meth:`factorise` expects)."""
+        return self._entries
+
+    def factorise(self, values) -> None:
+        """Factorise the matrix with this pattern and ``values`` (one per entry, CSC order).
+
+        Raises
+        ------
+        ValueError
+            If the values are not finite or of the wrong length, or the matrix is not
+            positive definite (as for :class:`SparseCholesky`). No factor is kept then.
+        """
         try:
-            array = np.asarray(rhs, dtype=np.float64)
+            array = np.ascontiguousarray(values, dtype=np.float64)
         except (TypeError, ValueError) as exc:
-            raise ValueError(f"rhs must be numeric: {exc}") from None
-        vector = array.ndim == 1
-        if vector:
-            array = array[:, None]
-        if array.ndim != 2 or array.shape[0] != self._n:
-            raise ValueError(f"rhs must have shape ({self._n},) or ({self._n}, k), got {np.shape(rhs)}")
-        check_finite(array, "rhs")
-        if array.shape[1] == 0 or self._n == 0:
-            solution = np.zeros(array.shape)
-        else:
-            # Fortran order lets the core read each column in place.
-            solution = np.ascontiguousarray(self._factor.solve(np.asfortranarray(array)))
-        return solution[:, 0] if vector else solution
+            raise ValueError(f"values must be numeric: {exc}") from None
+        if array.shape != (self._entries,):
+            raise ValueError(f"values must have shape ({self._entries},), got {array.shape}")
+        check_finite(array, "values")
+        self._factor.factorize(array, _PIVOT_TOLERANCE)
+
+    @property
+    def factorised(self) -> bool:
+        """Whether a factor is held (the last :meth:`factorise` succeeded)."""
+        return bool(self._factor.factorised)
+
+    def solve(self, rhs) -> np.ndarray:
+        """Solve A x = b with the last factor; ``rhs`` of shape (n,) or (n, k).
+
+        Raises
+        ------
+        ValueError
+            If no factor is held, or ``rhs`` is malformed or not finite.
+        """
+        if not self._factor.factorised:
+            raise ValueError("no factor: call factorise() first (or the last one failed)")
+        return _solve(self._factor, self._n, rhs)
+
+    def __repr__(self) -> str:
+        return f"PatternCholesky(n={self._n}, entries={self._entries})"

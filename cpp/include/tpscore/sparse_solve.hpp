@@ -49,4 +49,41 @@ private:
     double max_pivot_ = 0.0;
 };
 
+/// Factorises a sequence of symmetric positive-definite matrices that share one
+/// sparsity pattern (the systems of an iterative fit): the approximate-minimum-degree
+/// ordering and the symbolic analysis are computed once, at construction, and each
+/// factorize() computes only the numeric factor.
+///
+/// Not safe to factorize() while another thread solves.
+class PatternCholesky {
+public:
+    /// Analyses the pattern of the LOWER triangle given in compressed-sparse-column
+    /// form (same preconditions as SparseCholesky, without values).
+    PatternCholesky(std::int64_t n, const std::int64_t* indptr, const std::int64_t* indices);
+
+    /// Factorises the matrix with this pattern and the given values (one per stored
+    /// entry, in CSC order). Throws std::invalid_argument as SparseCholesky does when
+    /// the matrix is singular or indefinite; the object then holds no factor.
+    void factorize(const double* values, double pivot_tolerance);
+
+    /// Solves A X = B with the last factor (in parallel over columns, like
+    /// SparseCholesky::solve). Throws std::logic_error when there is no factor.
+    Eigen::MatrixXd solve(const Eigen::Ref<const Eigen::MatrixXd>& rhs) const;
+
+    std::int64_t size() const { return n_; }
+    std::int64_t stored_entries() const { return lower_.nonZeros(); }
+    bool factorised() const { return factorised_; }
+    double min_pivot() const { return min_pivot_; }
+    double max_pivot() const { return max_pivot_; }
+
+private:
+    using Matrix = Eigen::SparseMatrix<double, Eigen::ColMajor, int>;
+    std::int64_t n_;
+    Matrix lower_;
+    Eigen::SimplicialLDLT<Matrix, Eigen::Lower, Eigen::AMDOrdering<int>> ldlt_;
+    bool factorised_ = false;
+    double min_pivot_ = 0.0;
+    double max_pivot_ = 0.0;
+};
+
 }  // namespace tpscore
