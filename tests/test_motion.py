@@ -1,13 +1,16 @@
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
-from tpscore import datasets
+from tpscore import _core, datasets
 from tpscore.landmarks import landmark_index
-from tpscore.motion import (BSplineLattice, MirroredMotion, MotionOptions, curvature_image,
-                           face_gradients, refine_landmark_motion, refined_pair_trust,
+from tpscore.motion import (BSplineLattice, LatticeSystem, MirroredMotion, MotionOptions,
+                           curvature_image, face_gradients, symmetric_blocks, refine_landmark_motion, refined_pair_trust,
                            grid_normals, register_surfaces, rest_pull_per_node)
 from tpscore.normalise import FrameTransform
 from tpscore.preprocess import FaceGrid, resample_scan
+from tpscore.reference import lattice as reference
+from tpscore.sparse import SparseCholesky
 from tpscore.spatial import MeshSurface
 
 
@@ -31,6 +34,70 @@ def test_bspline_lattice_is_a_partition_of_unity_and_reproduces_affine_fields():
     assert abs(affine @ bending @ affine) < 1e-9 * (affine @ affine)
     bump = np.exp(-((nodes ** 2).sum(axis=1)) / 200.0)
     assert bump @ bending @ bump > 1e-4
+
+
+def _random_symmetric(rng, m):
+    q = rng.normal(size=(m, 3, 3))
+    return q + q.transpose(0, 2, 1)
+
+
+@pytest.mark.parametrize("spacing", [4.0, 7.0, 30.0])
+def test_lattice_system_data_term_matches_the_scipy_assembly(spacing):
+    rng = np.random.default_rng(int(spacing))
+    lattice = BSplineLattice([-40.0, -60.0], [45.0, 50.0], spacing)
+    # points beyond the rectangle too: their stencils are clipped to the lattice's edge
+    xy = rng.uniform([-50, -70], [55, 60], size=(700, 2))
+    q = _random_symmetric(rng, len(xy))
+    system = LatticeSystem(lattice, xy)
+    expected = reference.block_gram(lattice.basis(xy), q).toarray()
+    got = system.matrix(system.data_term(symmetric_blocks(q))).toarray()
+    assert np.abs(got - expected).max() <= 1e-12 * np.abs(expected).max()
+    # a second call overwrites, it does not accumulate
+    got_again = system.matrix(system.data_term(symmetric_blocks(2.0 * q))).toarray()
+    assert np.allclose(got_again, 2.0 * expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
+def test_lattice_system_solves_the_registration_terms_like_a_fresh_factorisation():
+    rng = np.random.default_rng(3)
+    lattice = BSplineLattice([0.0, 0.0], [60.0, 50.0], 8.0)
+    xy = rng.uniform([0, 0], [60, 50], size=(400, 2))
+    normals = rng.normal(size=(len(xy), 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    w = rng.uniform(0, 1, len(xy))
+    q = w[:, None, None] * (normals[:, :, None] * normals[:, None, :] + 0.1 * np.eye(3))
+    landmarks = lattice.basis(rng.uniform([0, 0], [60, 50], size=(5, 2)))
+    fixed = sp.bmat([[landmarks.T @ landmarks * (1.0 + (k == l)) for l in range(3)] for k in range(3)])
+    bending = sp.block_diag([lattice.bending()] * 3)
+    system = LatticeSystem(lattice, xy)
+    rhs = rng.normal(size=system.n)
+    for alpha in (10.0, 0.1):
+        matrix = reference.block_gram(lattice.basis(xy), q) + alpha * bending + fixed \
+            + 1e-8 * sp.identity(system.n)
+        values = (system.data_term(symmetric_blocks(q)) + alpha * system.aligned(bending)
+                  + system.aligned(fixed + 1e-8 * sp.identity(system.n)))
+        expected = SparseCholesky(matrix).solve(rhs)
+        assert np.abs(system.solve(values, rhs) - expected).max() <= 1e-8 * np.abs(expected).max()
+
+
+def test_lattice_system_rejects_couplings_beyond_two_stencils_and_bad_blocks():
+    lattice = BSplineLattice([0.0, 0.0], [60.0, 50.0], 8.0)
+    system = LatticeSystem(lattice, np.array([[10.0, 10.0], [30.0, 20.0]]))
+    far = sp.coo_matrix(([1.0, 1.0], ([system.n - 1, 0], [0, system.n - 1])), shape=(system.n, system.n))
+    with pytest.raises(ValueError, match="farther apart"):
+        system.aligned(far)
+    with pytest.raises(ValueError, match=r"blocks must have shape \(2, 6\)"):
+        system.data_term(np.zeros((3, 6)))
+
+
+def test_lattice_gram_kernel_refuses_a_stencil_that_leaves_the_lattice():
+    rows, cols = 6, 5
+    out = np.zeros((rows * cols, 25, 6))
+    weights, blocks = np.ones((1, 16)), np.ones((1, 6))
+    for first in (-1, 2, 3 * cols):          # before the lattice, past its right, past its foot
+        with pytest.raises(ValueError, match="leaves the 6 x 5 lattice"):
+            _core.lattice_block_gram_into(np.array([first]), weights, blocks, rows, cols, out)
+    with pytest.raises(ValueError, match="out must have shape"):
+        _core.lattice_block_gram_into(np.array([0]), weights, blocks, rows, cols, np.zeros((4, 25, 6)))
 
 
 def test_options_are_validated():

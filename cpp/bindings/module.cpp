@@ -11,6 +11,7 @@ void bind_csrbf(nb::module_& m);
 void bind_spatial(nb::module_& m);
 void bind_mesh_ops(nb::module_& m);
 void bind_sparse_solve(nb::module_& m);
+void bind_lattice_gram(nb::module_& m);
 
 NB_MODULE(_core, m) {
     m.doc() = "tpscore's compiled kernels (private: use the tpscore package instead)";
@@ -22,4 +23,5 @@ NB_MODULE(_core, m) {
     bind_spatial(m);
     bind_mesh_ops(m);
     bind_sparse_solve(m);
+    bind_lattice_gram(m);
 }

@@ -32,7 +32,10 @@ field u(x, y) (the faces look toward +z, so a field over the x-y plane covers th
   differences), with a stiffness that decreases over the iterations, so the field
   first follows the large motions and then the fine ones.
 
-Each iteration solves the sparse normal equations with :class:`tpscore.SparseCholesky`.
+Every iteration's normal equations share one sparsity pattern (:class:`LatticeSystem`):
+the data term's block Gram matrix is assembled by a compiled kernel straight into that
+pattern, and :class:`tpscore.PatternCholesky` analyses the pattern once and then only
+refactorises.
 """
 from __future__ import annotations
 
@@ -41,10 +44,12 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .sparse import SparseCholesky
+from . import _core
+from .sparse import PatternCholesky
 from .spatial import MeshSurface
 
-__all__ = ["MotionOptions", "DenseMotion", "BSplineLattice", "register_surfaces", "AdaptedMotion",
+__all__ = ["MotionOptions", "DenseMotion", "BSplineLattice", "LatticeSystem", "symmetric_blocks",
+           "register_surfaces", "AdaptedMotion",
            "MirroredMotion", "adapt_motion", "curvature_image", "face_gradients",
            "refine_landmark_motion", "refined_pair_trust"]
 
@@ -271,6 +276,122 @@ class BSplineLattice:
         dxy = operator({(-1, -1): 0.25, (-1, 1): -0.25, (1, -1): -0.25, (1, 1): 0.25})
         energy = dxx.T @ dxx + 2.0 * dxy.T @ dxy + dyy.T @ dyy
         return (energy / self.spacing ** 2).tocsr()
+
+
+# The unique entries of a symmetric 3 x 3 block in the compiled kernel's order (xx, xy,
+# xz, yy, yz, zz), and the slot of entry (k, l) among them.
+SYMMETRIC_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_SYMMETRIC_SLOT = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
+# The forward node offsets (rows, columns) two cubic stencils can share, in the
+# kernel's slot order: every unordered node pair once, under its lower-indexed node.
+_NEIGHBOUR_OFFSETS = [(0, c) for c in range(4)] + [(r, c) for r in range(1, 4) for c in range(-3, 4)]
+
+
+def symmetric_blocks(matrices) -> np.ndarray:
+    """(m, 6) unique entries (xx, xy, xz, yy, yz, zz) of (m, 3, 3) symmetric matrices."""
+    matrices = np.asarray(matrices, dtype=np.float64)
+    return np.stack([matrices[:, k, l] for k, l in SYMMETRIC_ENTRIES], axis=1)
+
+
+class LatticeSystem:
+    """The normal equations of a least-squares fit of a 3-vector field on a
+    :class:`BSplineLattice`, for fixed sample points, in the node values with
+    component blocks [x; y; z] (3 n_nodes unknowns).
+
+    Every matrix such a fit forms (the bending energy, landmark terms, each
+    iteration's data term) couples only nodes that two cubic stencils can share, at
+    most 3 rows and 3 columns apart, so one sparsity pattern holds them all. The
+    pattern, the samples' stencils and the sparse factor's ordering and symbolic
+    analysis are made here, once; an iteration then fills in values, with the data
+    term's block Gram matrix from a compiled kernel, and refactorises.
+
+    Parameters
+    ----------
+    lattice : BSplineLattice
+    xy : (m, 2) array_like
+        The sample points (mm).
+    """
+
+    def __init__(self, lattice: BSplineLattice, xy):
+        self.lattice = lattice
+        nodes, weights = lattice._stencil(xy)
+        self._first_node = np.ascontiguousarray(nodes[:, 0])
+        self._weights = np.ascontiguousarray(weights)
+        rows = np.repeat(np.arange(len(nodes)), 16)
+        self.basis = sp.csr_matrix((weights.ravel(), (rows, nodes.ravel())), shape=(len(nodes), lattice.n_nodes))
+        self._gram = np.empty((lattice.n_nodes, len(_NEIGHBOUR_OFFSETS), len(SYMMETRIC_ENTRIES)))
+        self._build_pattern()
+        self._factor = PatternCholesky(self.indptr, self.indices)
+
+    def _build_pattern(self) -> None:
+        n = self.lattice.n_nodes
+        lattice_rows, lattice_columns = self.lattice.shape
+        node = np.arange(n)
+        node_row, node_column = np.divmod(node, lattice_columns)
+        entry_rows, entry_columns, sources = [], [], []
+        for slot, (dr, dc) in enumerate(_NEIGHBOUR_OFFSETS):
+            inside = (node_row + dr < lattice_rows) & (node_column + dc >= 0) & (node_column + dc < lattice_columns)
+            p = node[inside]
+            q = p + dr * lattice_columns + dc
+            for k in range(3):
+                for m in range(3):
+                    source = (p * len(_NEIGHBOUR_OFFSETS) + slot) * len(SYMMETRIC_ENTRIES) + _SYMMETRIC_SLOT[k, m]
+                    # the block couples p with q and q with p alike (it is symmetric)
+                    entry_rows += [k * n + q, k * n + p]
+                    entry_columns += [m * n + p, m * n + q]
+                    sources += [source, source]
+        entry_rows = np.concatenate(entry_rows)
+        entry_columns = np.concatenate(entry_columns)
+        sources = np.concatenate(sources)
+        lower = entry_rows >= entry_columns
+        keys, first = np.unique(entry_columns[lower] * (3 * n) + entry_rows[lower], return_index=True)
+        self._keys = keys
+        self._take = sources[lower][first]
+        self.indices = keys % (3 * n)
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(keys // (3 * n), minlength=3 * n))])
+
+    @property
+    def n(self) -> int:
+        """Unknowns: three per node."""
+        return 3 * self.lattice.n_nodes
+
+    def aligned(self, matrix) -> np.ndarray:
+        """The values of a symmetric (n, n) sparse matrix in the pattern's entry order
+        (its lower triangle; duplicates summed).
+
+        Raises
+        ------
+        ValueError
+            If the matrix has an entry outside the pattern.
+        """
+        lower = sp.tril(sp.coo_matrix(matrix))
+        keys = lower.col.astype(np.int64) * self.n + lower.row
+        where = np.minimum(np.searchsorted(self._keys, keys), len(self._keys) - 1)
+        outside = self._keys[where] != keys
+        if np.any(outside & (lower.data != 0)):
+            raise ValueError("the matrix couples nodes farther apart than two stencils reach")
+        return np.bincount(where[~outside], weights=lower.data[~outside], minlength=len(self._keys))
+
+    def data_term(self, blocks) -> np.ndarray:
+        """The values, in the pattern's entry order, of sum_i (b_i b_i^T) (x) Q_i over
+        the samples (b_i: a sample's 16 B-spline weights; Q_i: a symmetric 3 x 3
+        weight given as its (m, 6) :data:`SYMMETRIC_ENTRIES`)."""
+        blocks = np.ascontiguousarray(blocks, dtype=np.float64)
+        if blocks.shape != (len(self._first_node), len(SYMMETRIC_ENTRIES)):
+            raise ValueError(f"blocks must have shape ({len(self._first_node)}, 6), got {blocks.shape}")
+        _core.lattice_block_gram_into(self._first_node, self._weights, blocks,
+                                      self.lattice.shape[0], self.lattice.shape[1], self._gram)
+        return self._gram.ravel()[self._take]
+
+    def matrix(self, values) -> sp.csc_matrix:
+        """The symmetric (n, n) matrix with ``values`` in the pattern (for inspection)."""
+        lower = sp.csc_matrix((values, self.indices, self.indptr), shape=(self.n, self.n))
+        return (lower + sp.tril(lower, -1).T).tocsc()
+
+    def solve(self, values, rhs) -> np.ndarray:
+        """Factorise the matrix with ``values`` and solve it for ``rhs`` (n,) or (n, k)."""
+        self._factor.factorise(values)
+        return self._factor.solve(rhs)
 
 
 @dataclass
@@ -637,7 +758,8 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     prior = np.ones(len(sample)) if weight is None else np.asarray(weight, dtype=np.float64)[sample_mask]
     valid = points[mask]
     lattice = BSplineLattice(valid[:, :2].min(axis=0), valid[:, :2].max(axis=0), options.spacing_mm)
-    basis = lattice.basis(sample[:, :2])
+    system = LatticeSystem(lattice, sample[:, :2])
+    basis = system.basis
     bending = lattice.bending()
     n_nodes = lattice.n_nodes
 
@@ -688,6 +810,12 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     data_normals = grid_normals(points)[sample_mask] if options.rest_shape_ratio > 0 else None
     rest = rest_pull_per_node(basis, data_normals, options.rest_weight, options.rest_shape_ratio)
     ridge = sp.diags(1e-8 + rest, format="csr")
+    # the terms that do not change over the iterations, in the system's pattern
+    bending_values = system.aligned(sp.block_diag([bending] * 3))
+    fixed_values = system.aligned(lm_normal + membrane + sp.block_diag([ridge] * 3))
+    lm_rhs = lm_basis.T @ lm_pull
+    identity = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])      # I as symmetric entries
+    upper_i, upper_j = np.array(SYMMETRIC_ENTRIES).T
     stiffness = np.geomspace(options.stiffness_start, options.stiffness_end, options.iterations)
     start = options.min_scale_start_mm if options.min_scale_start_mm > 0 else options.min_scale_mm
     floors = np.geomspace(start, options.min_scale_mm, options.iterations)
@@ -705,18 +833,14 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         w = np.where((u < 1.0) & ~rim, (1.0 - u * u) ** 2, 0.0) * prior
         inliers = float(np.mean(w > 0))
         residual_rms = float(np.sqrt(np.average(along ** 2, weights=w))) if w.sum() > 0 else float("nan")
-        # normal equations in the node values, component blocks [x; y; z]
-        plane_rows = sp.hstack([basis.multiply(normals[:, k:k + 1]) for k in range(3)]).tocsr()
-        weighted_plane = plane_rows.multiply(w[:, None]).tocsr()
-        target_plane = np.einsum("ij,ij->i", closest.points - sample, normals)
-        point_normal = basis.T @ basis.multiply(w[:, None])
+        # normal equations in the node values: each pair weighs the field's offset
+        # from its closest point with w (n n^T + pull I), point-to-plane plus the
+        # optional pull toward the point itself
         pull = options.tangential_weight * (alpha / stiffness[0] if options.tangential_decay else 1.0)
-        block = alpha * bending + pull * point_normal + ridge
-        matrix = (plane_rows.T @ weighted_plane) + sp.block_diag([block] * 3) + lm_normal + membrane
-        rhs = plane_rows.T @ (w * target_plane)
-        point_rhs = basis.T @ ((closest.points - sample) * (pull * w)[:, None])
-        lm_rhs = lm_basis.T @ lm_pull
-        rhs = rhs + (point_rhs + lm_rhs).T.ravel()
+        blocks = w[:, None] * (normals[:, upper_i] * normals[:, upper_j] + pull * identity)
+        target_plane = np.einsum("ij,ij->i", closest.points - sample, normals)
+        per_sample_rhs = (normals * (w * target_plane)[:, None]
+                          + (closest.points - sample) * (pull * w)[:, None])
         if use_shape:
             # shape matching, linearised at the current field: the expressive curvature
             # at the moved point plus its surface gradient times the change of the
@@ -734,11 +858,11 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
             ws = np.where(usable & (v < 1.0), (1.0 - v * v) ** 2, 0.0) * w * options.shape_weight
             gradient = np.where(usable[:, None], gradient, 0.0)
             target_shape = np.where(usable, target_shape, 0.0)
-            shape_rows = sp.hstack([basis.multiply(gradient[:, k:k + 1]) for k in range(3)]).tocsr()
-            matrix = matrix + shape_rows.T @ shape_rows.multiply(ws[:, None])
-            rhs = rhs + shape_rows.T @ (ws * target_shape)
-        solution = SparseCholesky(sp.csc_matrix(matrix)).solve(rhs)
-        values = solution.reshape(3, n_nodes).T.copy()
+            blocks = blocks + ws[:, None] * gradient[:, upper_i] * gradient[:, upper_j]
+            per_sample_rhs = per_sample_rhs + gradient * (ws * target_shape)[:, None]
+        matrix_values = system.data_term(blocks) + alpha * bending_values + fixed_values
+        rhs = (basis.T @ per_sample_rhs + lm_rhs).T.ravel()
+        values = system.solve(matrix_values, rhs).reshape(3, n_nodes).T.copy()
     return DenseMotion(lattice, values, residual_rms, inliers)
 
 

@@ -1,0 +1,21 @@
+"""SciPy reference for the lattice normal equations in tpscore.motion.
+
+The scipy route to the block Gram matrix sum_i (b_i b_i^T) (x) Q_i of samples on a
+B-spline lattice: one sparse product B^T diag(Q_kl) B per component pair (k, l),
+stacked in component blocks [x; y; z]. Same conventions as
+tpscore.motion.LatticeSystem.data_term.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+__all__ = ["block_gram"]
+
+
+def block_gram(basis, blocks) -> sp.csr_matrix:
+    """(3 n, 3 n) block Gram matrix of a (m, n) sample basis and (m, 3, 3) weights Q_i."""
+    basis = sp.csr_matrix(basis, dtype=np.float64)
+    blocks = np.asarray(blocks, dtype=np.float64)
+    return sp.bmat([[basis.T @ basis.multiply(blocks[:, k, l][:, None]) for l in range(3)]
+                    for k in range(3)]).tocsr()
