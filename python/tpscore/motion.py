@@ -239,7 +239,10 @@ class BSplineLattice:
     def basis(self, xy, derivative: str = "") -> sp.csr_matrix:
         """(m, n_nodes) sparse matrix: the field at points (m, 2) is basis @ node_values;
         with ``derivative="x"`` (``"y"``) its derivative along x (y), per mm."""
-        cols, values = self._stencil(xy, derivative)
+        return self._stencil_matrix(*self._stencil(xy, derivative))
+
+    def _stencil_matrix(self, cols, values) -> sp.csr_matrix:
+        """The (m, n_nodes) sparse matrix of :meth:`_stencil`'s node indices and weights."""
         rows = np.repeat(np.arange(len(cols)), 16)
         return sp.csr_matrix((values.ravel(), (rows, cols.ravel())), shape=(len(cols), self.n_nodes))
 
@@ -317,8 +320,7 @@ class LatticeSystem:
         nodes, weights = lattice._stencil(xy)
         self._first_node = np.ascontiguousarray(nodes[:, 0])
         self._weights = np.ascontiguousarray(weights)
-        rows = np.repeat(np.arange(len(nodes)), 16)
-        self.basis = sp.csr_matrix((weights.ravel(), (rows, nodes.ravel())), shape=(len(nodes), lattice.n_nodes))
+        self.basis = lattice._stencil_matrix(nodes, weights)
         self._gram = np.empty((lattice.n_nodes, len(_NEIGHBOUR_OFFSETS), len(SYMMETRIC_ENTRIES)))
         self._build_pattern()
         self._factor = PatternCholesky(self.indptr, self.indices)
@@ -838,9 +840,9 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         # optional pull toward the point itself
         pull = options.tangential_weight * (alpha / stiffness[0] if options.tangential_decay else 1.0)
         blocks = w[:, None] * (normals[:, upper_i] * normals[:, upper_j] + pull * identity)
-        target_plane = np.einsum("ij,ij->i", closest.points - sample, normals)
-        per_sample_rhs = (normals * (w * target_plane)[:, None]
-                          + (closest.points - sample) * (pull * w)[:, None])
+        to_closest = closest.points - sample
+        target_plane = np.einsum("ij,ij->i", to_closest, normals)
+        per_sample_rhs = normals * (w * target_plane)[:, None] + to_closest * (pull * w)[:, None]
         if use_shape:
             # shape matching, linearised at the current field: the expressive curvature
             # at the moved point plus its surface gradient times the change of the
