@@ -270,3 +270,23 @@ def test_arrays_validation_names_the_field():
         replace(arrays, anchor_target=np.full((2, 3), np.nan)).validated()
     with pytest.raises(ValueError, match="muscle_axes"):
         replace(arrays, muscle_axes=2 * arrays.muscle_axes).validated()
+
+
+def test_a_sphincter_draws_its_ring_toward_the_epicentre_within_its_plane():
+    head = flat_head(size=11, muscles=[sphincter(centre=(0.0, 0.0, 0.0), force=0.05)])
+    model = SkinModel(head)
+    result = model.simulate(np.array([1.0]))
+    assert result.settled
+    n = len(head.vertices)
+    rest = model.layers.rest[2 * n:]
+    moved = result.layers[2 * n:] - rest
+    radius = np.hypot(rest[:, 0] / 6.0, rest[:, 1] / 4.0)  # elliptic radius of the ring (6 x 4 mm)
+    ring = (radius > 0.5) & (radius < 1.3)
+    inward = -np.einsum("ij,ij->i", moved[ring, :2], rest[ring, :2]) / np.linalg.norm(rest[ring, :2], axis=1)
+    assert np.all(inward > 0)
+    # the pull itself lies in the ellipse's plane (z = const); what rises is the
+    # compressed tissue bulging
+    pull = reference.forces(model.layers.arrays, model.layers.rest, np.zeros_like(model.layers.rest),
+                            np.array([1.0]), 0.0)[2 * n:]
+    assert np.abs(pull[:, 2]).max() < 1e-9 * np.abs(pull).max()
+    assert np.abs(pull).max() > 0

@@ -66,7 +66,7 @@ void bind_skin_sim(nb::module_& m) {
                const IndexRef& skull_indptr, const IndexRef& skull_neighbours,
                const IndexRef& particle_foot, const VectorRef& contact_stiffness,
                const VectorRef& contact_damping,
-               double contact_margin,
+               const VectorRef& contact_margin,
                const Eigen::Vector3d& jaw_pivot, const Eigen::Vector3d& jaw_axis) {
                 tpscore::SkinSystemData data;
                 data.masses = masses;

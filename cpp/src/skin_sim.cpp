@@ -90,18 +90,21 @@ Eigen::Vector3d JawMotion::apply(const Eigen::Vector3d& point, std::int64_t bone
 
 SkullContact SkinSystem::locate(const Eigen::Vector3d& x, std::int64_t foot,
                                 const SkullGeometry& skull) const {
-    // The closest point of the triangles around the nearest skull vertex, among those
-    // wholly on that vertex's bone: the skull's own surface, so the height and its
-    // direction change continuously as a particle slides (a vertex's tangent plane
-    // jumps from one vertex to the next, and a penalty along it chatters).
+    // The closest point of the triangles near the nearest skull vertex (its two-ring):
+    // among those wholly on that vertex's bone: the skull's own surface, so the height
+    // and its direction change continuously as a particle slides (a vertex's tangent
+    // plane jumps from one vertex to the next, and so would the closest point of its
+    // one-ring alone where the true closest point lies one ring farther; a penalty
+    // along a jumping surface pumps energy into the tissue). The triangles across the
+    // seam between skull and mandible belong to neither: the open jaw pulls them apart.
     const SkinSystemData& d = data_;
     SkullContact best;
     bool best_on_rim = false;
-    // Far above the vertex's tangent plane, the triangles around it (which lie within
-    // skull_reach of it) are farther than the contact margin: no need to look closer.
+    // Far above the vertex's tangent plane, the triangles near it (which rise at most
+    // skull_rise above it) are farther than the contact margin: no need to look closer.
     best.normal = row(skull.normals, foot);
     best.height = (x - row(skull.vertices, foot)).dot(best.normal);
-    if (best.height > d.contact_margin + skull_reach_[static_cast<std::size_t>(foot)]) {
+    if (best.height > max_margin_ + skull_rise_[static_cast<std::size_t>(foot)]) {
         best.point = x - best.height * best.normal;
         return best;
     }
@@ -124,11 +127,11 @@ SkullContact SkinSystem::locate(const Eigen::Vector3d& x, std::int64_t foot,
         }
     }
     if (best.face >= 0 && best_on_rim) {
-        // The closest skull point lies on the skull's rim (its outline, or the lips'
-        // cut): the particle is beside the skull, not over it, at its distance from
-        // the rim. Counting it as inside would snap tissue that slid past the rim back
-        // onto the rim's edge; for a particle above the skull the height stays
-        // continuous as its closest point reaches the rim.
+        // The closest skull point lies on the rim of the particle's bone (the skull's
+        // outline, the seam to the other bone): the particle is beside the bone, not
+        // over it, at its distance from the rim. Counting it as inside would snap tissue
+        // that slid past the rim back onto the rim's edge; for a particle above the
+        // bone the height stays continuous as its closest point reaches the rim.
         const Vec3 offset = x - best.point;
         best.height = std::sqrt(best_distance);
         best.normal = best.height > 1e-12 ? Vec3(offset / best.height)
@@ -209,16 +212,23 @@ SkinSystem::SkinSystem(SkinSystemData data) : data_(std::move(data)) {
     for (std::int64_t i = 0; i < n; ++i)
         if (!(data_.rest_stiffness[i] > 0.0)) data_.rest_stiffness[i] = 1.0;  // a free particle
 
-    // The longest edge around each skull vertex: the triangles around it lie within
-    // that distance of it (same-bone triangles move rigidly, so it holds at any jaw).
-    skull_reach_.assign(static_cast<std::size_t>(data_.skull_vertices.rows()), 0.0);
-    for (Eigen::Index f = 0; f < data_.skull_faces.rows(); ++f)
-        for (int k = 0; k < 3; ++k) {
-            const std::int64_t a = data_.skull_faces(f, k), b = data_.skull_faces(f, (k + 1) % 3);
-            const double length = (row(data_.skull_vertices, a) - row(data_.skull_vertices, b)).norm();
-            for (std::int64_t v : {a, b})
-                skull_reach_[static_cast<std::size_t>(v)] = std::max(skull_reach_[static_cast<std::size_t>(v)], length);
-        }
+    max_margin_ = data_.contact_margin.size() ? data_.contact_margin.maxCoeff() : 0.0;
+    // How far the triangles listed for each skull vertex (those on its own bone, the
+    // only ones the contact search uses) rise above its tangent plane: a particle
+    // higher than that plus the contact margin cannot touch them. They move rigidly
+    // with their bone, so this holds at any jaw angle.
+    skull_rise_.assign(static_cast<std::size_t>(data_.skull_vertices.rows()), 0.0);
+    for (Eigen::Index v = 0; v < data_.skull_vertices.rows(); ++v) {
+        const Vec3 origin = row(data_.skull_vertices, v);
+        const Vec3 normal = row(data_.skull_normals, v);
+        for (std::int64_t e = data_.skull_face_indptr[v]; e < data_.skull_face_indptr[v + 1]; ++e)
+            for (int k = 0; k < 3; ++k) {
+                const std::int64_t corner = data_.skull_faces(data_.skull_vertex_faces[e], k);
+                if (data_.skull_bone[corner] != data_.skull_bone[v]) continue;
+                const double rise = (row(data_.skull_vertices, corner) - origin).dot(normal);
+                skull_rise_[static_cast<std::size_t>(v)] = std::max(skull_rise_[static_cast<std::size_t>(v)], rise);
+            }
+    }
     build_pattern();
 }
 
@@ -350,8 +360,8 @@ void SkinSystem::accumulate_forces(const SkinState& state, const SkinControls& c
             const std::int64_t foot = state.foot[i];
             if (foot >= 0 && skull.vertices.rows() > 0 && d.contact_stiffness[i] > 0.0) {
                 const SkullContact contact = locate(x, foot, skull);
-                if (contact.height < d.contact_margin)
-                    total += (d.contact_stiffness[i] * (d.contact_margin - contact.height) -
+                if (contact.height < d.contact_margin[i])
+                    total += (d.contact_stiffness[i] * (d.contact_margin[i] - contact.height) -
                               d.contact_damping[i] * v.dot(contact.normal)) *
                              contact.normal;
             }
@@ -431,7 +441,7 @@ void SkinSystem::project_contacts(SkinState& state, const SkinControls& controls
             const Vec3 x = row(state.positions, static_cast<std::int64_t>(p));
             // Walk downhill over the skull's vertices to the nearest one: tissue slides
             // a few millimetres per step at most, so this takes a step or two. The walk
-            // stays on the particle's own bone: where the open jaw tears the skull
+            // stays on the particle's own bone: where the open jaw pulls the skull
             // apart, a particle hopping between the two parts would meet surfaces that
             // disagree and chatter between them.
             const std::int64_t bone = d.skull_bone[foot];
@@ -541,7 +551,7 @@ void SkinSystem::assemble(const SkinState& state, const SkinControls& controls, 
             const std::int64_t foot = state.foot[j];
             if (foot >= 0 && d.contact_stiffness[j] > 0.0 && d.skull_vertices.rows() > 0) {
                 const SkullContact contact = locate(x, foot, skull);
-                if (contact.height < d.contact_margin) {
+                if (contact.height < d.contact_margin[j]) {
                     const Mat3 along = contact.normal * contact.normal.transpose();
                     diagonal += (h * d.contact_damping[j] + h2 * d.contact_stiffness[j]) * along;
                     stiffness_times_v += d.contact_stiffness[j] * along * v;

@@ -6,7 +6,7 @@ kernels in ``tpscore._core`` are private. Procedural faces are in
 """
 from __future__ import annotations
 
-from . import datasets, landmarks, render
+from . import datasets, landmarks, physics, render
 from ._core import num_threads, set_num_threads
 from .action_units import ActionUnit, ActionUnitLibrary, ControlPoint, default_library
 from .average_face import AverageFace, build_average_face, load_average_face
@@ -115,6 +115,7 @@ __all__ = [
     "transfer",
     # submodules
     "datasets",
+    "physics",
     "render",
     # compactly supported RBF
     "CSRBF",

@@ -6,6 +6,7 @@
     tpscore build-afm [--out average_face.npz]
     tpscore elastic --face-model face_model.npz --out DIR   (fit and clone expressions)
     tpscore adapt TEMPLATE SCAN --template-landmarks T.lm3 --scan-landmarks S.lm3 --out fitted.obj
+    tpscore simulate SCAN --au 12:0.6 [--jaw 10] --out settled.npz [--gif smile.gif]   (physical skin)
 
 Errors are reported as one line on stderr (exit status 2), not as a traceback.
 """
@@ -21,6 +22,7 @@ import numpy as np
 
 from .adaptation_cli import add_adapt_parser, adapt_command
 from .elastic_cli import add_elastic_parser, elastic_command
+from .physics.cli import add_simulate_parser, simulate_command
 
 __all__ = ["main"]
 
@@ -173,6 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quiet", action="store_true")
     add_elastic_parser(sub)
     add_adapt_parser(sub)
+    add_simulate_parser(sub)
     b = sub.add_parser("build-afm", help="rebuild the average face model from the procedural faces")
     b.add_argument("--out", default="average_face.npz")
     b.add_argument("--grid", default="150x150")
@@ -184,7 +187,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     handlers = {"transfer": run_transfer, "demo": run_demo, "build-afm": run_build_afm,
-                "elastic": elastic_command, "adapt": adapt_command}
+                "elastic": elastic_command, "adapt": adapt_command, "simulate": simulate_command}
     with warnings.catch_warnings():
         warnings.simplefilter("default")
         warnings.showwarning = lambda message, *_args, **_kw: print(

@@ -4,7 +4,8 @@ Writes, into the output folder: the three input scans as Bosphorus files (.bnt a
 .lm3), then for each demonstrated expression the transferred target as .npz, OBJ and
 PLY (with the u,v map), a picture of source, expression, target and result side by
 side with an error heat map against the known ground truth, and an animated GIF of a
-magnitude sweep.
+magnitude sweep. Then the physical skin: a fitted scan smiles, frowns and opens its
+jaw (:func:`tpscore.physics.demo.run_skin_demo`).
 """
 from __future__ import annotations
 
@@ -95,5 +96,8 @@ def run_demo(out_dir="demo-output", *, quiet: bool = False) -> dict:
         say(f"{stem}: rms error {summary[stem]['rms_mm']:.2f} mm where the truth moves "
             f"(leaving the target neutral: {summary[stem]['noop_rms_mm']:.2f} mm); "
             f"wrote target_{stem}.npz/.obj/.ply, transfer_{stem}.png, sweep_{stem}.gif")
+    from .physics.demo import run_skin_demo
+
+    summary["skin"] = run_skin_demo(out, quiet=quiet)
     say(f"done: outputs in {out.resolve()}")
     return summary

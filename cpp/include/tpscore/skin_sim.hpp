@@ -13,14 +13,15 @@
 //   the pull fading to zero within 1 mm of the attachment (or the sphincter's axis);
 // - drag: a force -drag * m * v on every particle, which settles slow modes;
 // - skull contact: with h the signed distance of a particle to the skull (to the
-//   closest point of the triangles around its nearest skull vertex; N the unit
+//   closest point of the triangles near its nearest skull vertex; N the unit
 //   direction out of the skull there), a damped penalty force (k_c (margin - h) -
-//   c_c v.N) N pushes it out while h < margin; a particle that still gets inside
+//   c_c v.N) N pushes it out while h < margin (per particle, below its rest height); a particle that still gets inside
 //   (h < 0) is moved back onto the skull, and its inward velocity is removed. The
 //   penalty makes a resting contact a true equilibrium of the forces; the projection
-//   guarantees that nothing ends inside the skull. A particle whose closest skull
-//   point lies on the skull's rim (its outline, the lips' cut) is beside the skull,
-//   not over it: its height is its distance from the rim.
+//   guarantees that nothing ends inside the skull. Each particle meets only the
+//   bone it rests on (skull or mandible); where its closest point lies on that bone's
+//   rim (the outline, the seam to the other bone) it is beside the bone, at its
+//   distance from the rim.
 //
 // Units are the caller's; tpscore uses mm, g and s (forces in g mm / s^2 = 1e-6 N).
 // Every per-particle quantity is gathered row by row in a fixed order, so results
@@ -83,8 +84,8 @@ struct SkinSystemData {
     Points skull_vertices;           ///< (v, 3) rest positions
     Points skull_normals;            ///< (v, 3) unit outward normals at rest
     Faces skull_faces;               ///< (f, 3) triangles, oriented outward
-    IndexVector skull_face_indptr;   ///< (v + 1,) CSR: the triangles around each vertex
-    IndexVector skull_vertex_faces;  ///< their indices
+    IndexVector skull_face_indptr;   ///< (v + 1,) CSR: the triangles the contact search
+    IndexVector skull_vertex_faces;  ///< tries near each vertex (its two-ring, in order)
     IndexVector skull_face_rim;      ///< (f,) bit k: the edge opposite corner k is on the rim
     IndexVector skull_bone;          ///< (v,) SkinBone
     IndexVector skull_indptr;        ///< (v + 1,) CSR vertex adjacency of the skull mesh
@@ -92,7 +93,7 @@ struct SkinSystemData {
     IndexVector particle_foot;       ///< (n,) first skull vertex to search from; -1: no contact
     VectorX contact_stiffness;       ///< (n,) k_c of the penalty (0: projection only)
     VectorX contact_damping;         ///< (n,) c_c of the penalty
-    double contact_margin = 0.0;     ///< height over the plane where the penalty starts
+    VectorX contact_margin;          ///< (n,) height over the skull where the penalty starts
 
     Eigen::Vector3d jaw_pivot = Eigen::Vector3d::Zero();  ///< a point on the jaw's axis
     Eigen::Vector3d jaw_axis = Eigen::Vector3d::UnitX();  ///< unit axis (the head's x)
@@ -119,7 +120,7 @@ struct SkullGeometry {
 
 /// Where a particle meets the skull.
 struct SkullContact {
-    double height = 0.0;  ///< signed distance, > 0 outside (beside the rim: the distance)
+    double height = 0.0;  ///< signed distance, > 0 outside
     Eigen::Vector3d normal = Eigen::Vector3d::Zero();  ///< unit, out of the skull
     Eigen::Vector3d point = Eigen::Vector3d::Zero();   ///< the closest skull point
     std::int64_t face = -1;                     ///< its triangle (-1: a vertex's plane)
@@ -235,7 +236,8 @@ private:
     std::vector<std::int64_t> pattern_indptr_, pattern_indices_;
     std::vector<std::int64_t> spring_block_;  // (s,) slot of block (higher, lower) in column lower
     std::unique_ptr<PatternCholesky> factor_;  // the implicit step's, refactorised every step
-    std::vector<double> skull_reach_;  // (v,) longest edge around each skull vertex
+    std::vector<double> skull_rise_;   // (v,) how far its listed triangles rise over its plane
+    double max_margin_ = 0.0;          // the largest contact margin
 
     void build_pattern();
     /// Lower-triangle CSC values of M + dt D + dt^2 K linearised at `state`, and K v per

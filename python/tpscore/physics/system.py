@@ -125,8 +125,8 @@ class SkinArrays:
         First skull vertex of each particle's contact search; -1: no contact.
     contact_stiffness, contact_damping : (n,) >= 0
         Stiffness and damping of the contact penalty per particle (0: projection only).
-    contact_margin : float >= 0
-        Height over the skull's tangent plane where the penalty starts.
+    contact_margin : (n,) >= 0
+        Height over the skull below which the penalty pushes each particle out.
     jaw_pivot : (3,), jaw_axis : (3,) unit
     """
 
@@ -164,7 +164,7 @@ class SkinArrays:
     particle_foot: np.ndarray | None = None
     contact_stiffness: np.ndarray | None = None
     contact_damping: np.ndarray | None = None
-    contact_margin: float = 0.0
+    contact_margin: np.ndarray | float = 0.0
     jaw_pivot: np.ndarray = field(default_factory=lambda: np.zeros(3))
     jaw_axis: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
 
@@ -268,10 +268,10 @@ class SkinArrays:
             out[name] = _float(np.zeros(n) if value is None else value, (n,), name)
             if np.any(out[name] < 0):
                 raise ValueError(f"{name} must be >= 0")
-        margin = float(self.contact_margin)
-        if not np.isfinite(margin) or margin < 0:
-            raise ValueError(f"contact_margin must be finite and >= 0, got {self.contact_margin!r}")
-        out["contact_margin"] = margin
+        margin = np.broadcast_to(np.asarray(self.contact_margin, dtype=np.float64), (n,))
+        out["contact_margin"] = _float(margin, (n,), "contact_margin")
+        if np.any(out["contact_margin"] < 0):
+            raise ValueError("contact_margin must be >= 0")
         out["jaw_pivot"] = _float(self.jaw_pivot, (3,), "jaw_pivot")
         axis = _float(self.jaw_axis, (3,), "jaw_axis")
         if not np.isclose(np.linalg.norm(axis), 1.0, atol=1e-9):

@@ -88,11 +88,11 @@ def _skull_at(arrays, jaw_angle):
 def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
     """Where points meet the skull: (height (m,), normal (m, 3), closest point (m, 3)).
 
-    The closest point of the triangles around each point's skull vertex `foot` that lie
-    wholly on that vertex's bone, the distance to it signed by the triangle's normal,
-    and the unit direction out of the skull; the vertex's tangent plane where no such
-    triangle exists. Where the closest point lies on the skull's rim the point is
-    beside the skull, not over it: its height is its (unsigned) distance to the rim.
+    The closest point of the triangles listed near each point's skull vertex `foot` that
+    lie wholly on that vertex's bone, the distance to it signed by the triangle's
+    normal, and the unit direction out of the skull; the vertex's tangent plane where
+    no such triangle exists. Where the closest point lies on the skull's rim, the skull
+    continues as the rim triangle's plane.
     """
     from .spatial import closest_point_on_triangles
 
@@ -132,7 +132,7 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
         normal = np.where((distance > 1e-12)[:, None], side[:, None] * offset / distance[:, None], face_normal)
     plane_normal = normals[foot]
     plane_height = np.einsum("ij,ij->i", points - skull[foot], plane_normal)
-    # beside the rim: outside, at the distance from the rim
+    # beside the rim of the bone: outside, at the distance from the rim
     with np.errstate(invalid="ignore", divide="ignore"):
         rim_normal = np.where((distance > 1e-12)[:, None], offset / distance[:, None], face_normal)
     height = np.where(found, np.where(best_rim, distance, height), plane_height)
@@ -183,9 +183,9 @@ def forces(arrays, positions, velocities, contractions, jaw_angle: float, foot=N
         foot = np.asarray(foot)
         rows = np.flatnonzero((foot >= 0) & (arrays.contact_stiffness > 0))
         height, normal, _ = locate(arrays, positions[rows], foot[rows], jaw_angle)
-        inside = height < arrays.contact_margin
+        inside = height < arrays.contact_margin[rows]
         r = rows[inside]
-        push = (arrays.contact_stiffness[r] * (arrays.contact_margin - height[inside])
+        push = (arrays.contact_stiffness[r] * (arrays.contact_margin[r] - height[inside])
                 - arrays.contact_damping[r] * np.einsum("ij,ij->i", velocities[r], normal[inside]))
         total[r] += push[:, None] * normal[inside]
     assert total.shape == (n, 3)
@@ -323,7 +323,7 @@ def _contact_rows(arrays, positions, foot, jaw_angle):
     foot = np.asarray(foot)
     rows = np.flatnonzero((foot >= 0) & (arrays.contact_stiffness > 0))
     height, normal, _ = locate(arrays, positions[rows], foot[rows], jaw_angle)
-    inside = height < arrays.contact_margin
+    inside = height < arrays.contact_margin[rows]
     return rows[inside], normal[inside]
 
 
