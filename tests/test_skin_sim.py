@@ -76,7 +76,7 @@ def test_run_loop_matches_the_reference(system):
     arrays, core, x, _ = system
     zero = np.zeros_like(x)
     contractions = np.array([0.5, 0.5])
-    settings = dict(dt=3e-2, max_steps=900, ramp_time=0.1, velocity_tolerance=1e-2, force_tolerance=1e-3,
+    settings = dict(dt=5e-2, max_steps=500, ramp_time=0.1, velocity_tolerance=1e-2, force_tolerance=1e-3,
                     patience=3, check_every=2, divergence_distance=100.0, record_every=7, record_count=3)
     got = core.run(x, zero, arrays.particle_foot, contractions, 0.2, 0, settings["dt"], settings["max_steps"],
                    settings["ramp_time"], settings["velocity_tolerance"], settings["force_tolerance"],

@@ -61,6 +61,14 @@ def parse_contractions(head, au_text: str, muscle_text: str) -> dict:
     return contractions
 
 
+def _check_contractions(head, contractions: dict) -> None:
+    for name, value in contractions.items():
+        if name not in head.muscle_names:
+            raise ValueError(f"contractions: unknown muscle {name!r}; known: {', '.join(head.muscle_names)}")
+        if not 0.0 <= value <= 1.0:
+            raise ValueError(f"contractions must lie in [0, 1], got {value:g} for {name!r}")
+
+
 def _landmarks_beside(path: Path):
     found = [path.with_suffix(s) for s in (".lm3", ".csv", ".json") if path.with_suffix(s).is_file()]
     if not found:
@@ -90,6 +98,10 @@ def simulate_command(args) -> int:
         return 0
     if (args.scan is None) == (args.fitted is None):
         raise ValueError("give a SCAN to fit the template to, or --fitted MESH (one of them)")
+    # Check the contractions on the template (its muscles are the fitted head's) before
+    # spending a fit on them.
+    contractions = parse_contractions(template, args.au, args.contract)
+    _check_contractions(template, contractions)
     if args.scan is not None:
         scan_path = Path(args.scan)
         if scan_path.suffix.lower() == ".bnt":
@@ -108,7 +120,6 @@ def simulate_command(args) -> int:
         vertices, _ = io.read_mesh(args.fitted)
         head = carry_head(template, deform_from_vertices(template, vertices), vertices)
         say(f"carried the template's structure onto {args.fitted}")
-    contractions = parse_contractions(head, args.au, args.contract)
     model = SkinModel(head)
     result = model.simulate(contractions, args.jaw, integrator=args.integrator, dt=args.dt)
     active = ", ".join(f"{k} {v:.2f}" for k, v in result.contractions.items()) or "no muscle"

@@ -77,7 +77,9 @@ class SkinMaterial:
     damping_ratio : float
         Each spring's damping as a fraction of its critical damping.
     drag : float
-        Mass-proportional damping (1/s) on every particle.
+        Mass-proportional damping (1/s) on every particle: soft tissue is heavily
+        damped (a face does not ring), and with a velocity that halves in about 5 ms
+        the skin settles within about 100 ms of the end of a 30 ms ramp.
     density_g_mm3 : float
         Tissue density.
     flexion : float
@@ -100,8 +102,8 @@ class SkinMaterial:
     hypodermal_depth: float = 0.85
     knee_strain: float = 0.3
     stiffening: float = 4.0
-    damping_ratio: float = 0.5
-    drag: float = 20.0
+    damping_ratio: float = 0.3
+    drag: float = 150.0
     density_g_mm3: float = 1.05e-3
     flexion: float = 3.0
     contact_margin_mm: float = 0.5
