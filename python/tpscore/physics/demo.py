@@ -20,7 +20,7 @@ __all__ = ["run_skin_demo", "SKIN_DEMO_EXPRESSIONS"]
 #: (file stem, title, AU intensities, jaw angle in degrees)
 SKIN_DEMO_EXPRESSIONS = (
     ("smile", "smile (AU12)", {"12": 0.6}, 0.0),
-    ("frown", "frown (AU4 + AU15)", {"4": 0.8, "15": 0.5}, 0.0),
+    ("frown", "frown (AU4 + AU15)", {"4": 0.6, "15": 0.4}, 0.0),
     ("jaw", "jaw open 15 deg", {}, 15.0),
 )
 # The demo's subject: a procedural identity the template (the average face) is not.

@@ -300,11 +300,22 @@ def _grid_mesh_with_mouth(points: np.ndarray, valid: np.ndarray, y_mouth: float,
     for r in range(rows - 1):
         for c in range(cols - 1):
             a, b, d, e = index[r, c], index[r, c + 1], index[r + 1, c], index[r + 1, c + 1]
-            # both triangles counter-clockwise seen from +z (rows run toward -y)
-            if a >= 0 and d >= 0 and b >= 0:
-                faces.append((a, d, b))
-            if b >= 0 and d >= 0 and e >= 0:
-                faces.append((b, d, e))
+            # Each cell is cut along a diagonal, the two halves of the face mirror images
+            # of each other: a mesh whose diagonals all lean one way is stiffer to one
+            # side, and a symmetric pull then buckles one side of the face first.
+            # Triangles counter-clockwise seen from +z (rows run toward -y).
+            corners = (a, b, d, e)
+            if min(corners) >= 0:
+                if points[r, c, 0] + points[r, c + 1, 0] < 0:
+                    faces += [(a, d, b), (b, d, e)]
+                else:
+                    faces += [(a, d, e), (a, e, b)]
+            elif sum(v >= 0 for v in corners) == 3:
+                # at the outline: the one triangle of the three corners there are
+                for triangle in ((a, d, b), (b, d, e), (a, d, e), (a, e, b)):
+                    if min(triangle) >= 0:
+                        faces.append(triangle)
+                        break
     faces = np.array(faces, dtype=np.int64)
     # the cut: grid vertices on the mouth line strictly between the corners
     on_line = np.isclose(vertices[:, 1], y_mouth, atol=1e-6) & (np.abs(vertices[:, 0]) < x_corner - 0.5 * spacing)
