@@ -1,7 +1,7 @@
 """Stability limits of the physical skin's integrators, measured.
 
 For each step size the core runs a smile (AU12 at 0.5, ramped over 30 ms) and a jaw
-opening (15 degrees) on the template head for 0.25 s of simulated time, without the
+opening (15 degrees) on the template head for 0.15 s of simulated time, without the
 Python layer's safeguards (no sub-stepping, no retry), and the run counts as stable
 when it neither diverges (a non-finite value, or a particle 100 mm from rest) nor
 ends with a particle faster than 1 m/s. The semi-implicit integrator is swept in
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-SIMULATED_S = 0.25
+SIMULATED_S = 0.15
 CASES = (("smile", {"12": 0.5}, 0.0), ("jaw 15 deg", {}, 15.0))
 
 

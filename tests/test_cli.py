@@ -71,3 +71,7 @@ def test_demo_writes_meshes_and_pictures(tmp_path):
         assert (out / f"transfer_{stem}.png").stat().st_size > 1000
         assert (out / f"sweep_{stem}.gif").stat().st_size > 1000
     assert (out / "scans" / "target_neutral.bnt").is_file()
+    # the physical skin: a fitted scan smiles, frowns and opens its jaw
+    for stem in ("smile", "frown", "jaw"):
+        assert (out / f"skin_{stem}.png").stat().st_size > 1000
+    assert (out / "skin_expressions.gif").stat().st_size > 1000

@@ -27,7 +27,7 @@ from typing import Mapping
 import numpy as np
 
 from .._validation import as_faces, as_points
-from ..landmarks import LANDMARK_NAMES, N_LANDMARKS, landmark_index
+from ..landmarks import LANDMARK_NAMES, MIRROR_LANDMARK, N_LANDMARKS, landmark_index
 from .muscles import LinearMuscle, SphincterMuscle, place_muscles, read_muscle_file
 
 __all__ = [
@@ -93,9 +93,8 @@ _JAW_PIVOT_MM = (0.0, 15.0, -100.0)
 
 
 def _mirror_name(name: str) -> str:
-    swapped = name.replace("left", "\0").replace("right", "left").replace("\0", "right")
-    swapped = swapped.replace("Left", "\0").replace("Right", "Left").replace("\0", "Right")
-    return swapped
+    """The landmark on the other side of the face (itself on the midline)."""
+    return LANDMARK_NAMES[MIRROR_LANDMARK[landmark_index(name)]]
 
 
 def tissue_depth(points_frame: np.ndarray, landmarks_frame: np.ndarray) -> np.ndarray:
