@@ -232,16 +232,6 @@ def test_render_time_of_a_150_grid():
     assert elapsed < 2.0, elapsed  # typically ~0.05 s; only a guard against regressions
 
 
-def test_large_triangles_are_chunked(monkeypatch):
-    # Triangles covering the whole picture exceed a tiny chunk budget; the result must
-    # not depend on the chunking.
-    vertices = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0], [0, 0, 1]], dtype=float)
-    faces = [[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]]
-    expected = render_mesh(vertices, faces, width=64, height=64)
-    monkeypatch.setattr(render, "RASTER_CHUNK_CANDIDATES", 100)
-    np.testing.assert_array_equal(render_mesh(vertices, faces, width=64, height=64), expected)
-
-
 @pytest.mark.parametrize("kwargs, name", [
     (dict(faces=[[0, 1, 7]]), "faces"),
     (dict(view="top"), "view"),

@@ -12,6 +12,7 @@ void bind_spatial(nb::module_& m);
 void bind_mesh_ops(nb::module_& m);
 void bind_sparse_solve(nb::module_& m);
 void bind_lattice_gram(nb::module_& m);
+void bind_raster(nb::module_& m);
 
 NB_MODULE(_core, m) {
     m.doc() = "tpscore's compiled kernels (private: use the tpscore package instead)";
@@ -24,4 +25,5 @@ NB_MODULE(_core, m) {
     bind_mesh_ops(m);
     bind_sparse_solve(m);
     bind_lattice_gram(m);
+    bind_raster(m);
 }
