@@ -41,7 +41,12 @@ __all__ = [
     "write_landmarks",
     "read_mesh",
     "write_mesh",
+    "read_image",
 ]
+
+#: Largest colour image read, in pixels: far beyond a face scanner's camera, and a guard
+#: against a small compressed file that would decompress into gigabytes.
+MAX_IMAGE_PIXELS = 64_000_000
 
 # The background / hole marker that Bosphorus scanners (and make_scans.py) write.
 DEFAULT_BNT_ZMIN = -1.0e9
@@ -120,6 +125,42 @@ def _as_landmark_array(landmarks, name: str = "landmarks") -> np.ndarray:
 def _format_float(value: float) -> str:
     # repr gives the shortest text that reads back to the same float.
     return repr(float(value))
+
+
+# --------------------------------------------------------------------------- images
+
+def read_image(path) -> np.ndarray:
+    """Read a colour image (PNG, JPEG, BMP, TIFF: what Pillow reads) as (h, w, 3) uint8.
+
+    Grey and palette images are expanded to RGB; an alpha channel is dropped.
+
+    Raises
+    ------
+    ValueError
+        Naming the file: missing, a folder, not an image, truncated or corrupt, or
+        larger than :data:`MAX_IMAGE_PIXELS`.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    where = repr(str(path))
+    if not os.path.exists(path):
+        raise ValueError(f"{where}: image file not found")
+    if os.path.isdir(path):
+        raise ValueError(f"{where}: is a folder, not an image file")
+    try:
+        with Image.open(path) as opened:
+            width, height = opened.size
+            if width * height > MAX_IMAGE_PIXELS:
+                raise ValueError(f"{where}: image of {width} x {height} pixels is larger than the "
+                                 f"{MAX_IMAGE_PIXELS:,} pixels tpscore reads")
+            if min(width, height) < 2:
+                raise ValueError(f"{where}: image of {width} x {height} pixels is too small")
+            rgb = np.asarray(opened.convert("RGB"), dtype=np.uint8)
+    except UnidentifiedImageError:
+        raise ValueError(f"{where}: not an image file Pillow can read") from None
+    except (OSError, SyntaxError, Image.DecompressionBombError) as exc:
+        raise ValueError(f"{where}: truncated or corrupt image ({exc})") from None
+    return rgb
 
 
 # --------------------------------------------------------------------------- .bnt

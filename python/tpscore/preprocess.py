@@ -31,7 +31,9 @@ from typing import NamedTuple
 import numpy as np
 
 from ._validation import as_positive
-from .io import BntScan, _as_landmark_array, read_bnt, read_landmarks, read_mesh
+from .image import as_colour_image as _as_colour_image
+from .image import check_image_fits, sample_image
+from .io import BntScan, _as_landmark_array, read_bnt, read_image, read_landmarks, read_mesh
 from .landmarks import LANDMARK_NAMES, N_LANDMARKS, empty_landmarks
 
 __all__ = [
@@ -110,6 +112,10 @@ class FaceGrid:
         NaN rows for missing landmarks.
     landmark_vertices : (22,) int64
         Flat grid index (``r * W + c``) of each landmark's vertex; -1 when missing.
+    image : (h, w, 3) uint8 or None
+        The scan's colour image at full resolution, which ``uv`` points into (None for
+        a scan without one). It is shared, not copied, between grids made from one
+        scan, and read-only.
     """
 
     points: np.ndarray
@@ -117,6 +123,7 @@ class FaceGrid:
     uv: np.ndarray
     landmarks: np.ndarray
     landmark_vertices: np.ndarray
+    image: np.ndarray | None = None
 
     def __post_init__(self):
         mask = np.array(self.mask, dtype=bool)
@@ -148,6 +155,8 @@ class FaceGrid:
             raise ValueError(f"landmark {LANDMARK_NAMES[bad]!r} refers to a vertex outside the mask")
         self.points, self.mask, self.uv = points, mask, uv
         self.landmarks, self.landmark_vertices = landmarks, index
+        if self.image is not None:
+            self.image = _as_colour_image(self.image)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -163,6 +172,16 @@ class FaceGrid:
     def n_valid(self) -> int:
         """Number of valid vertices."""
         return int(np.count_nonzero(self.mask))
+
+    @property
+    def colours(self) -> np.ndarray | None:
+        """(H, W, 3) float32 RGB in [0, 1] of each vertex, read from ``image`` at its u,v
+        (NaN where the mask is False); None without an image."""
+        if self.image is None:
+            return None
+        colours = sample_image(self.image, self.uv) / 255.0
+        colours[~self.mask] = np.nan
+        return colours
 
     def triangles(self) -> np.ndarray:
         """Triangles over the valid grid vertices, as flat grid indices.
@@ -224,7 +243,7 @@ class FaceGrid:
     def copy(self) -> "FaceGrid":
         """A deep copy."""
         return FaceGrid(self.points.copy(), self.mask.copy(), self.uv.copy(),
-                        self.landmarks.copy(), self.landmark_vertices.copy())
+                        self.landmarks.copy(), self.landmark_vertices.copy(), self.image)
 
     def with_points(self, new_points) -> "FaceGrid":
         """The same grid (mask, u,v map, landmark vertices) with moved vertices.
@@ -252,7 +271,8 @@ class FaceGrid:
         landmarks = empty_landmarks()
         present = self.landmark_vertices >= 0
         landmarks[present] = points.reshape(-1, 3)[self.landmark_vertices[present]]
-        return FaceGrid(points, self.mask.copy(), self.uv.copy(), landmarks, self.landmark_vertices.copy())
+        return FaceGrid(points, self.mask.copy(), self.uv.copy(), landmarks, self.landmark_vertices.copy(),
+                        self.image)
 
     def with_landmarks(self, landmarks) -> "FaceGrid":
         """The same grid with `landmarks` (22, 3; NaN rows missing) snapped to it.
@@ -261,7 +281,7 @@ class FaceGrid:
         :func:`resample_scan` for the warning given when that vertex is far.
         """
         snapped, index = _snap_landmarks(self.vertices, self.mask.reshape(-1), landmarks)
-        return FaceGrid(self.points.copy(), self.mask.copy(), self.uv.copy(), snapped, index)
+        return FaceGrid(self.points.copy(), self.mask.copy(), self.uv.copy(), snapped, index, self.image)
 
 
 # --------------------------------------------------------------------------- resampling
@@ -376,7 +396,7 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
 
 
 def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
-              max_gap_mm: float = DEFAULT_MAX_GAP_MM) -> FaceGrid:
+              max_gap_mm: float = DEFAULT_MAX_GAP_MM, image_path=None) -> FaceGrid:
     """Read a scan and its landmarks and resample them with :func:`resample_scan`.
 
     Parameters
@@ -390,12 +410,31 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
         landmarks are all missing and a :class:`LandmarkSnapWarning` says so.
     shape, max_gap_mm
         As in :func:`resample_scan`.
+    image_path : str or PathLike, optional
+        The colour image of a ``.bnt`` scan. By default the image the ``.bnt`` names,
+        beside it; when that file does not exist the scan is geometry only
+        (``FaceGrid.image`` is None) and every step works without colour.
+
+    Raises
+    ------
+    ValueError
+        Naming the file: an unreadable scan, landmark file or image, or an image whose
+        size does not fit the scan's u,v.
     """
     path = Path(path)
     # the scan first: a missing scan is the error to report, not its missing landmarks
+    image = None
     if path.suffix.lower() == ".bnt":
         source = read_bnt(path)
+        if image_path is None and source.image_name:
+            beside = path.parent / source.image_name
+            image_path = beside if beside.exists() else None
+        if image_path is not None:
+            image = read_image(image_path)
+            check_image_fits(image, source.points, source.uv, source.valid, repr(str(image_path)))
     else:
+        if image_path is not None:
+            raise ValueError(f"image_path: only a .bnt scan carries the u,v an image needs, not {str(path)!r}")
         source, _ = read_mesh(path)
     if landmarks_path is None:
         candidates = [path.with_suffix(s) for s in (".lm3", ".csv", ".json")]
@@ -409,7 +448,10 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
             landmarks = None
     else:
         landmarks = read_landmarks(landmarks_path)
-    return resample_scan(source, landmarks, shape, max_gap_mm=max_gap_mm)
+    grid = resample_scan(source, landmarks, shape, max_gap_mm=max_gap_mm)
+    if image is not None:
+        grid.image = _as_colour_image(image)
+    return grid
 
 
 # --------------------------------------------------------------------------- helpers
