@@ -123,6 +123,7 @@ def main(argv=None) -> int:
         "default-no-spill": replace(default, upper_spill=0.0),
         "adapt-field": replace(default, motion="adapt"),
         "default": default,
+        "geometry-only": replace(default, texture=False),
         # the registration's choices, each undone or added on its own
         "default-raw-landmarks": replace(default, motion_options=replace(
             default.motion_options, refine_radius_mm=0.0)),

@@ -50,6 +50,7 @@ from .preprocess import FaceGrid
 from .rbf import TPS
 from .regions import region_weight, side_weight, smoothstep
 from .spatial import KDTree, MeshSurface
+from .texture import track_texture
 
 __all__ = [
     "TransferOptions",
@@ -173,6 +174,7 @@ class TransferOptions:
     scale_lower_face: bool = False
     landmark_smoothing: float = 0.0
     merge_landmarks_mm: float = 3.0
+    texture: bool = True
     motion_options: MotionOptions = MotionOptions()
 
     def __post_init__(self):
@@ -374,10 +376,13 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
         # the surface's vertices are the grid's valid vertices in row-major order
         expressive_curvature = curvature_image(grid.points, grid.mask, motion_options.shape_sigma_mm
                                                ).reshape(-1)[np.flatnonzero(grid.mask.ravel())]
+    texture = None
+    if options.texture and source_neutral.grid.image is not None and source_expressive.grid.image is not None:
+        texture = track_texture(source_neutral.grid, source_expressive.grid)
     return register_surfaces(source_neutral.grid.points, source_neutral.grid.mask,
                              source_neutral.landmarks, source_expressive.surface(),
                              source_expressive.landmarks, motion_options,
-                             expressive_curvature=expressive_curvature)
+                             expressive_curvature=expressive_curvature, texture=texture)
 
 
 def _mirrored(field, face: NormalisedFace):

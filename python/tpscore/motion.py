@@ -137,6 +137,14 @@ class MotionOptions:
         the squared B-spline weights). A flat patch (forehead, cheek) has r near 0
         and keeps the whole pull; lips, nose and chin, whose normals turn, are left to
         the data and the landmarks.
+    texture_weight : float
+        Weight of a texture match (:func:`tpscore.texture.track_texture`) at full
+        confidence, relative to a point-to-plane pair. A match pulls its data point
+        along the expressive surface (its normal component is left to the
+        point-to-plane pair) toward where the skin's pattern went.
+    texture_min_scale_mm : float
+        Lower bound of the texture matches' robust scale (about the flow's noise on
+        still skin).
     """
 
     spacing_mm: float = 8.0
@@ -158,16 +166,18 @@ class MotionOptions:
     refine_max_rms_mm: float = 0.35
     rest_weight: float = 0.01
     rest_shape_ratio: float = 0.1
+    texture_weight: float = 10.0
+    texture_min_scale_mm: float = 0.3
 
     def __post_init__(self):
         for name in ("spacing_mm", "stiffness_start", "stiffness_end", "tukey_factor",
-                     "min_scale_mm", "shape_sigma_mm"):
+                     "min_scale_mm", "shape_sigma_mm", "texture_min_scale_mm"):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:
                 raise ValueError(f"{name} must be finite and > 0, got {value!r}")
         for name in ("landmark_weight", "tangential_weight", "shape_weight", "membrane_weight",
                      "refine_radius_mm", "refined_landmark_weight", "refine_max_rms_mm", "rest_weight",
-                     "min_scale_start_mm", "rest_shape_ratio"):
+                     "min_scale_start_mm", "rest_shape_ratio", "texture_weight"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:
                 raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
@@ -725,7 +735,7 @@ def refined_pair_trust(fit_rms, shape, max_rms_mm: float) -> np.ndarray:
 
 def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressive_surface: MeshSurface,
                       expressive_landmarks, options: MotionOptions = MotionOptions(),
-                      weight=None, expressive_curvature=None) -> DenseMotion:
+                      weight=None, expressive_curvature=None, texture=None) -> DenseMotion:
     """Register a neutral face grid onto an expressive surface of the same person.
 
     Parameters
@@ -745,6 +755,10 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         :func:`curvature_image` of the expressive grid at the vertices of
         ``expressive_surface`` (NaN where unknown), with ``options.shape_sigma_mm``.
         Needed when ``options.shape_weight > 0``.
+    texture : TextureMatches, optional
+        Matches of the neutral grid's vertices on the expressive surface by their skin
+        texture (:func:`tpscore.texture.track_texture`); without them the geometry alone
+        says how the skin slides.
 
     Returns
     -------
@@ -758,6 +772,11 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     sample_mask &= mask
     sample = points[sample_mask]
     prior = np.ones(len(sample)) if weight is None else np.asarray(weight, dtype=np.float64)[sample_mask]
+    if texture is not None:
+        texture_targets = texture.targets[sample_mask]
+        texture_prior = options.texture_weight * texture.confidence[sample_mask] * prior
+        texture_prior[~np.isfinite(texture_targets).all(axis=1)] = 0.0
+        texture_targets = np.nan_to_num(texture_targets)
     valid = points[mask]
     lattice = BSplineLattice(valid[:, :2].min(axis=0), valid[:, :2].max(axis=0), options.spacing_mm)
     system = LatticeSystem(lattice, sample[:, :2])
@@ -862,11 +881,37 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
             target_shape = np.where(usable, target_shape, 0.0)
             blocks = blocks + ws[:, None] * gradient[:, upper_i] * gradient[:, upper_j]
             per_sample_rhs = per_sample_rhs + gradient * (ws * target_shape)[:, None]
+        if texture is not None:
+            texture_blocks, texture_rhs = _texture_term(moved, sample, normals, texture_targets, texture_prior,
+                                                        options)
+            blocks = blocks + texture_blocks
+            per_sample_rhs = per_sample_rhs + texture_rhs
         matrix_values = system.data_term(blocks) + alpha * bending_values + fixed_values
         rhs = (basis.T @ per_sample_rhs + lm_rhs).T.ravel()
         values = system.solve(matrix_values, rhs).reshape(3, n_nodes).T.copy()
     return DenseMotion(lattice, values, residual_rms, inliers)
 
+
+
+def _texture_term(moved, sample, normals, targets, prior, options: MotionOptions):
+    """Each data point's pull along the expressive surface toward its texture match: the
+    energy w |P (s + u(s) - q)|^2 with P = I - n n^T (n: the expressive surface's normal
+    at the point's current closest point) and w the match's weight times a Tukey biweight
+    of its tangential residual. Returns the (m, 6) symmetric blocks w P and the (m, 3)
+    right-hand sides w P (q - s)."""
+    offset = moved - targets
+    offset -= np.einsum("ij,ij->i", offset, normals)[:, None] * normals
+    residual = np.linalg.norm(offset, axis=1)
+    used = prior > 0
+    scale = max(1.4826 * float(np.median(residual[used])) if used.any() else 0.0, options.texture_min_scale_mm)
+    u = residual / (options.tukey_factor * scale)
+    w = np.where(used & (u < 1.0), (1.0 - u * u) ** 2, 0.0) * prior
+    upper_i, upper_j = np.array(SYMMETRIC_ENTRIES).T
+    identity = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])
+    blocks = w[:, None] * (identity - normals[:, upper_i] * normals[:, upper_j])
+    to_target = targets - sample
+    to_target -= np.einsum("ij,ij->i", to_target, normals)[:, None] * normals
+    return blocks, w[:, None] * to_target
 
 
 class AdaptedMotion:
