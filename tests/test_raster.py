@@ -96,3 +96,29 @@ def test_bad_input_is_rejected(kwargs, name):
     arguments.update(kwargs)
     with pytest.raises(ValueError, match=name):
         raster.rasterise(**arguments)
+
+
+@pytest.mark.parametrize("channels", [None, 1, 4])
+def test_interpolation_agrees_with_reference_and_reproduces_linear_values(channels):
+    pixels, depth, faces = random_mesh(5, size=40)
+    triangle, barycentric = raster.rasterise(pixels, depth, faces, 40, 40)
+    rng = np.random.default_rng(1)
+    values = rng.normal(size=(len(pixels),) if channels is None else (len(pixels), channels))
+    got = raster.interpolate_pixels(values, faces, triangle, barycentric)
+    np.testing.assert_allclose(got, reference.interpolate_pixels(values, faces, triangle, barycentric),
+                               atol=1e-12, equal_nan=True)
+    # a linear function of the pixel position is reproduced exactly at the centres
+    linear = 2.0 + 0.5 * pixels[:, 0] - 0.25 * pixels[:, 1]
+    at = raster.interpolate_pixels(linear, faces, triangle, barycentric)
+    r, c = np.nonzero(triangle >= 0)
+    np.testing.assert_allclose(at[r, c], 2.0 + 0.5 * (c + 0.5) - 0.25 * (r + 0.5), atol=1e-9)
+    assert np.isnan(at[triangle < 0]).all()
+
+
+def test_interpolation_rejects_a_foreign_raster():
+    pixels, depth, faces = random_mesh(5, size=40)
+    triangle, barycentric = raster.rasterise(pixels, depth, faces, 40, 40)
+    with pytest.raises(ValueError, match="triangle refers"):
+        raster.interpolate_pixels(np.zeros(len(pixels)), faces[:10], triangle, barycentric)
+    with pytest.raises(ValueError, match="barycentric"):
+        raster.interpolate_pixels(np.zeros(len(pixels)), faces, triangle, barycentric[..., :2])

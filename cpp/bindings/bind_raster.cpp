@@ -21,4 +21,7 @@ void bind_raster(nb::module_& m) {
         "pixels"_a, "depth"_a, "faces"_a, "width"_a, "height"_a,
         nb::call_guard<nb::gil_scoped_release>(),
         "Front-most triangle (height * width,) and barycentric weights (height * width, 3) per pixel.");
+    m.def("interpolate_pixels", &tpscore::interpolate_pixels, "values"_a, "faces"_a, "triangle"_a,
+          "barycentric"_a, nb::call_guard<nb::gil_scoped_release>(),
+          "Vertex values (n, c) interpolated at each pixel's centre (pixels, c); NaN where no triangle.");
 }

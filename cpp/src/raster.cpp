@@ -103,4 +103,24 @@ Raster rasterise(const Eigen::Ref<const Points2>& pixels, const Eigen::Ref<const
     return out;
 }
 
+MatrixX interpolate_pixels(const MatrixRef& values, const FacesRef& faces,
+                           const Eigen::Ref<const IndexVector>& triangle, const MatrixRef& barycentric) {
+    const std::int64_t n_pixels = triangle.size();
+    const std::int64_t channels = values.cols();
+    MatrixX out(n_pixels, channels);
+    // pixels are independent rows; chunks of a few thousand keep thread start-up cheap
+    parallel_for(static_cast<std::size_t>(n_pixels), 8192, [&](std::size_t begin, std::size_t end) {
+        for (std::size_t p = begin; p < end; ++p) {
+            const std::int64_t t = triangle(static_cast<std::int64_t>(p));
+            if (t < 0) {
+                out.row(p).setConstant(std::numeric_limits<double>::quiet_NaN());
+                continue;
+            }
+            out.row(p) = barycentric(p, 0) * values.row(faces(t, 0)) + barycentric(p, 1) * values.row(faces(t, 1)) +
+                         barycentric(p, 2) * values.row(faces(t, 2));
+        }
+    });
+    return out;
+}
+
 }  // namespace tpscore

@@ -14,7 +14,7 @@ import numpy as np
 from . import _core
 from ._validation import as_faces, as_points, check_finite
 
-__all__ = ["rasterise", "MAX_RASTER_PIXELS"]
+__all__ = ["rasterise", "interpolate_pixels", "MAX_RASTER_PIXELS"]
 
 #: Largest image rasterised, in pixels (the outputs take 32 bytes a pixel).
 MAX_RASTER_PIXELS = 64_000_000
@@ -55,3 +55,35 @@ def rasterise(pixels, depth, faces, width: int, height: int):
                          f"{MAX_RASTER_PIXELS:,}")
     triangle, barycentric = _core.rasterise(pixels, depth, faces, int(width), int(height))
     return triangle.reshape(height, width), barycentric.reshape(height, width, 3)
+
+
+def interpolate_pixels(values, faces, triangle, barycentric) -> np.ndarray:
+    """Vertex values interpolated at the pixel centres of a :func:`rasterise` result.
+
+    Parameters
+    ----------
+    values : (n,) or (n, c) array_like
+        One value (or row of c values) per vertex.
+    faces : (m, 3) array_like of int
+        The faces that were rasterised.
+    triangle, barycentric : ndarray
+        :func:`rasterise`'s outputs, (h, w) and (h, w, 3).
+
+    Returns
+    -------
+    (h, w) or (h, w, c) float64 array, NaN where no triangle covers the pixel.
+    """
+    array = np.asarray(values, dtype=np.float64)
+    flat = array.reshape(len(array), -1) if array.ndim else array.reshape(0, 1)
+    faces = as_faces(faces, len(flat), "faces")
+    triangle = np.asarray(triangle)
+    barycentric = np.asarray(barycentric, dtype=np.float64)
+    if not np.issubdtype(triangle.dtype, np.integer) or barycentric.shape != triangle.shape + (3,):
+        raise ValueError(f"triangle (h, w) of integers and barycentric (h, w, 3) must come from rasterise, "
+                         f"got {triangle.dtype} {triangle.shape} and {barycentric.shape}")
+    index = np.ascontiguousarray(triangle, dtype=np.int64).reshape(-1)
+    if index.size and (index.min() < -1 or index.max() >= len(faces)):
+        raise ValueError(f"triangle refers to faces outside [-1, {len(faces)})")
+    out = _core.interpolate_pixels(np.ascontiguousarray(flat), faces, index,
+                                   np.ascontiguousarray(barycentric.reshape(-1, 3)))
+    return out.reshape(triangle.shape + array.shape[1:])

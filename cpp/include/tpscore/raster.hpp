@@ -34,4 +34,12 @@ struct Raster {
 Raster rasterise(const Eigen::Ref<const Points2>& pixels, const Eigen::Ref<const VectorX>& depth,
                  const FacesRef& faces, std::int64_t width, std::int64_t height);
 
+/// Values of each pixel's triangle, interpolated at its centre: row p of the result is
+/// sum_k barycentric(p, k) * values(faces(triangle(p), k)), or NaN where triangle(p) is
+/// -1. values is (n, c) row-major, one row per vertex; triangle and barycentric come
+/// from rasterise(). Preconditions: triangle entries are -1 or index into faces, whose
+/// entries index into values.
+MatrixX interpolate_pixels(const MatrixRef& values, const FacesRef& faces,
+                           const Eigen::Ref<const IndexVector>& triangle, const MatrixRef& barycentric);
+
 }  // namespace tpscore

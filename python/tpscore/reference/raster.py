@@ -62,3 +62,14 @@ def rasterise(pixels, depth, faces, width: int, height: int):
         winner[pid[best]] = tri[best]
         bary[pid[best]] = np.column_stack([w0[best], w1[best], w2[best]])
     return winner.reshape(height, width), bary.reshape(height, width, 3)
+
+
+def interpolate_pixels(values, faces, triangle, barycentric):
+    """Same contract as :func:`tpscore.raster.interpolate_pixels`."""
+    values = np.asarray(values, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    out = np.full(triangle.shape + values.shape[1:], np.nan)
+    covered = triangle >= 0
+    corners = faces[triangle[covered]]
+    out[covered] = np.einsum("pk,pk...->p...", barycentric[covered], values[corners])
+    return out
