@@ -119,16 +119,20 @@ def test_no_image_or_a_flat_one_falls_back_with_a_warning():
     bare = FaceGrid.from_points(expressive.points)
     with pytest.warns(TextureWarning, match="expressive scan has no colour image"):
         assert track_texture(neutral, bare) is None
-    flat = FaceGrid.from_points(expressive.points)
-    flat.image = np.full_like(expressive.image, 3)
+    dark = FaceGrid.from_points(expressive.points)
+    dark.image = np.full_like(expressive.image, 3)
     with pytest.warns(TextureWarning, match="too dark"):
+        assert track_texture(neutral, dark) is None
+    flat = FaceGrid.from_points(expressive.points)
+    flat.image = np.full_like(expressive.image, 128)
+    with pytest.warns(TextureWarning, match="no texture"):
         assert track_texture(neutral, flat) is None
 
 
 def test_unrelated_texture_fails_the_consistency_check():
     neutral, _ = textured_pair()
     _, stranger = textured_pair(seed=11)
-    with pytest.warns(TextureWarning, match="matched only"):
+    with pytest.warns(TextureWarning, match="matched less than"):
         assert track_texture(neutral, stranger) is None
 
 
@@ -155,3 +159,58 @@ def test_no_match_lands_in_a_hole_of_the_expressive_scan():
     targets = matches.targets[matches.confidence > 0]
     assert np.hypot(targets[:, 0] - 10.0, targets[:, 1] - 5.0).min() > 6.0
     assert matches.matched_fraction > 0.7
+
+
+@pytest.fixture(scope="module")
+def scans_with_images(shared, tmp_path_factory):
+    """Two subjects of make_scans.py: neutral and smile, with their colour images."""
+    import subprocess
+    import sys
+
+    folder = tmp_path_factory.mktemp("scans")
+    subprocess.run([sys.executable, str(shared / "tools" / "make_scans.py"), str(folder), "--subjects", "0", "1",
+                    "--expressions", "N_N_0", "LFAU_12_0"], check=True, capture_output=True)
+    return folder
+
+
+def test_transfer_tracks_texture_when_the_scans_have_images(scans_with_images):
+    import tpscore
+
+    def load(subject, code):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", tpscore.LandmarkSnapWarning)
+            return tpscore.load_scan(scans_with_images / f"bs{subject:03d}" / f"bs{subject:03d}_{code}.bnt")
+
+    neutral, smile, target = load(0, "N_N_0"), load(0, "LFAU_12_0"), load(1, "N_N_0")
+    result = tpscore.transfer(neutral, smile, target, "12")
+    assert result.model.texture is not None and result.model.texture.matched_fraction > 0.5
+    assert result.timings["texture"] > 0
+    # without the expressive scan's image the geometry alone says how the skin moved
+    bare = FaceGrid.from_points(smile.points, smile.mask, smile.landmarks)
+    with pytest.warns(TextureWarning, match="expressive scan has no colour image"):
+        plain = tpscore.transfer(neutral, bare, target, "12")
+    assert plain.model.texture is None and "texture" not in plain.timings
+    # the two fields differ: the texture moved the skin along the surface
+    moved = np.linalg.norm(result.vertices - plain.vertices, axis=-1)[result.mask]
+    assert np.percentile(moved, 99) > 0.3
+
+
+def test_refined_matches_follow_a_warp_and_still_find_the_slide():
+    neutral, expressive = textured_pair()
+    first = track_texture(neutral, expressive)
+    # a guess of the motion half way to the truth: the refined flow finds the rest
+    guess = 0.5 * true_motion(neutral.points)
+    refined = first.refined(guess)
+    used = refined.confidence > 0
+    assert used.mean() > 0.7
+    error = np.linalg.norm(refined.targets[used] - neutral.points[used] - true_motion(neutral.points[used]), axis=1)
+    assert np.median(error) < 0.1, np.median(error)
+    # the registration can match again half way through its iterations
+    mesh = expressive.mesh()
+    landmarks = np.full((22, 3), np.nan)
+    field = register_surfaces(neutral.points, neutral.mask, landmarks, MeshSurface(mesh.vertices, mesh.faces),
+                              landmarks, MotionOptions(texture_refine_after=5), texture=first)
+    assert field.texture is not first
+    got = field(neutral.points.reshape(-1, 3)).reshape(neutral.points.shape)
+    moving = np.linalg.norm(true_motion(neutral.points), axis=-1) > 0.5
+    assert np.sqrt(np.mean(np.sum((got - true_motion(neutral.points))[moving] ** 2, axis=-1))) < 0.3

@@ -174,7 +174,6 @@ class TransferOptions:
     scale_lower_face: bool = False
     landmark_smoothing: float = 0.0
     merge_landmarks_mm: float = 3.0
-    texture: bool = True
     motion_options: MotionOptions = MotionOptions()
 
     def __post_init__(self):
@@ -342,6 +341,13 @@ class ExpressionModel:
     def labels(self) -> list[str]:
         return [m.activation.label for m in self.motions]
 
+    @property
+    def texture(self):
+        """The texture matches the dense motion used (:class:`tpscore.texture.TextureMatches`),
+        or None when it came from the geometry alone."""
+        dense = self.dense.motion if isinstance(self.dense, MirroredMotion) else self.dense
+        return getattr(dense, "texture", None)
+
 
 def align_expressive(neutral: NormalisedFace, neutral_grid: FaceGrid, expressive_grid: FaceGrid,
                      regions: Sequence[str] = ()) -> NormalisedFace:
@@ -377,7 +383,8 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
         expressive_curvature = curvature_image(grid.points, grid.mask, motion_options.shape_sigma_mm
                                                ).reshape(-1)[np.flatnonzero(grid.mask.ravel())]
     texture = None
-    if options.texture and source_neutral.grid.image is not None and source_expressive.grid.image is not None:
+    if source_neutral.grid.image is not None or source_expressive.grid.image is not None:
+        # with one image missing this warns that the geometry alone is used
         texture = track_texture(source_neutral.grid, source_expressive.grid)
     return register_surfaces(source_neutral.grid.points, source_neutral.grid.mask,
                              source_neutral.landmarks, source_expressive.surface(),
@@ -772,6 +779,10 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
     lap("align")
     model = model_expression(neutral, expressive, activations, ref_face, options)
     lap("model")
+    if model.texture is not None:
+        # the texture tracking ran inside the modelling; report it as its own stage
+        timings["texture"] = model.texture.seconds
+        timings["model"] -= model.texture.seconds
     animation = animate(model, target_face)
     lap("animate")
     return TransferResult(animation, magnitude, model, timings)

@@ -33,14 +33,14 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ._validation import as_positive
-from .image import bilinear, grey_levels, sample_image
+from .image import bilinear, grey_levels
 from .preprocess import FaceGrid
-from .raster import rasterise
+from .raster import interpolate_pixels, rasterise
 
 __all__ = ["TextureOptions", "TextureMatches", "TextureWarning", "track_texture", "render_texture",
            "TexturePlane"]
@@ -116,24 +116,28 @@ class TextureView:
     grey: np.ndarray       # (h, w) float32 grey levels, 0 where nothing is seen
     points: np.ndarray     # (h, w, 3) surface point under each pixel, NaN where none
     valid: np.ndarray      # (h, w) bool
+    triangle: np.ndarray = None      # (h, w) the grid mesh's triangle under each pixel
+    barycentric: np.ndarray = None   # (h, w, 3) the pixel centre's weights on it
 
 
 def render_texture(grid: FaceGrid, plane: TexturePlane) -> TextureView:
     """Render a face grid's colour image into an image plane through its triangles."""
+    import cv2
+
     if grid.image is None:
         raise ValueError("the face grid has no colour image")
     mesh = grid.mesh()
     pixels = plane.pixels(mesh.vertices) + 0.5      # the rasteriser's centres are at +0.5
     triangle, barycentric = rasterise(pixels, mesh.vertices[:, 2], mesh.faces, plane.width, plane.height)
+    # each pixel's surface point and its position in the colour image
+    image_pixels = mesh.uv * np.array(grid.image.shape[1::-1], dtype=np.float64) - 0.5
+    seen = interpolate_pixels(np.column_stack([mesh.vertices, image_pixels]), mesh.faces, triangle, barycentric)
     covered = triangle >= 0
-    corners = mesh.faces[triangle[covered]]
-    weights = barycentric[covered]
-    uv = np.einsum("nk,nkd->nd", weights, mesh.uv[corners])
-    grey = np.zeros(covered.shape, dtype=np.float32)
-    grey[covered] = grey_levels(sample_image(grid.image, uv))
-    points = np.full(covered.shape + (3,), np.nan)
-    points[covered] = np.einsum("nk,nkd->nd", weights, mesh.vertices[corners])
-    return TextureView(grey, points, covered)
+    where = np.where(covered[..., None], seen[..., 3:], -1.0).astype(np.float32)
+    grey = cv2.remap(grey_levels(grid.image), where[..., 0], where[..., 1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE)
+    grey[~covered] = 0.0
+    return TextureView(grey, seen[..., :3], covered, triangle, barycentric)
 
 
 @dataclass
@@ -156,6 +160,31 @@ class TextureMatches:
     confidence: np.ndarray
     matched_fraction: float
     seconds: float
+    _tracker: "_Tracker | None" = field(default=None, repr=False)
+
+    def refined(self, displacement) -> "TextureMatches":
+        """The matches found again with the expressive image warped back by a motion
+        estimate, so that the flow only has to find what the estimate missed (large,
+        deforming motions fail the consistency check when the flow must find them alone).
+
+        Parameters
+        ----------
+        displacement : (H, W, 3) array_like
+            The estimated motion of each vertex of the neutral grid (mm; NaN where
+            unknown).
+
+        Returns
+        -------
+        TextureMatches; these matches unchanged when the refined flow fails its check.
+        """
+        if self._tracker is None:
+            raise ValueError("these matches were not made by track_texture and cannot be refined")
+        start = time.perf_counter()
+        refined = self._tracker.match(np.asarray(displacement, dtype=np.float64))
+        if refined is None:
+            return self
+        refined.seconds = time.perf_counter() - start
+        return refined
 
 
 def _image_pixel_mm(grid: FaceGrid) -> float:
@@ -166,6 +195,18 @@ def _image_pixel_mm(grid: FaceGrid) -> float:
     design = np.column_stack([xy - xy.mean(axis=0), np.ones(len(xy))])
     solution, *_ = np.linalg.lstsq(design, pixels, rcond=None)
     return float(1.0 / np.sqrt(abs(np.linalg.det(solution[:2]))))
+
+
+def _detail_rms(view: TextureView, sigma_px: float) -> float:
+    """RMS of the grey levels minus their local mean over the surface: the strength of
+    the image's pattern in grey levels (0 for a flat image)."""
+    import cv2
+
+    valid = view.valid.astype(np.float32)
+    grey = np.where(view.valid, view.grey, 0.0).astype(np.float32)
+    mean = cv2.GaussianBlur(grey, (0, 0), sigma_px) / np.maximum(cv2.GaussianBlur(valid, (0, 0), sigma_px), 1e-3)
+    detail = (grey - mean)[view.valid]
+    return float(np.sqrt(np.mean(detail * detail))) if detail.size else 0.0
 
 
 def _pattern(view: TextureView, sigma_px: float) -> np.ndarray:
@@ -180,7 +221,13 @@ def _pattern(view: TextureView, sigma_px: float) -> np.ndarray:
         return cv2.GaussianBlur(image, (0, 0), sigma) / np.maximum(cv2.GaussianBlur(valid, (0, 0), sigma), 1e-3)
 
     detail = np.where(view.valid, grey - local_mean(grey, sigma_px), 0.0).astype(np.float32)
-    contrast = np.sqrt(np.maximum(local_mean(detail * detail, 4.0 * sigma_px), 1e-6))
+    # the contrast varies over centimetres: estimate it on a quarter-resolution image
+    height, width = detail.shape
+    small = (max(width // 4, 1), max(height // 4, 1))
+    energy = cv2.resize(detail * detail, small, interpolation=cv2.INTER_AREA)
+    weight = cv2.resize(valid, small, interpolation=cv2.INTER_AREA)
+    energy = cv2.GaussianBlur(energy, (0, 0), sigma_px) / np.maximum(cv2.GaussianBlur(weight, (0, 0), sigma_px), 1e-3)
+    contrast = np.sqrt(np.maximum(cv2.resize(energy, (width, height), interpolation=cv2.INTER_LINEAR), 1e-6))
     return np.where(view.valid, detail / contrast, 0.0).astype(np.float32)
 
 
@@ -189,6 +236,9 @@ def _eight_bit(pattern: np.ndarray) -> np.ndarray:
     return np.clip(128.0 + 32.0 * pattern, 0, 255).astype(np.uint8)
 
 
+# Below this rms of detail (grey levels) an image holds nothing but 8-bit rounding and
+# sensor noise: a flat or blurred image has no pattern to follow.
+_MIN_DETAIL_GREY = 0.5
 # The structure tensor's window (mm): about the flow's patch on the face.
 _STRENGTH_WINDOW_MM = 1.4
 # The texture strength at which a match gets half its weight.
@@ -217,22 +267,77 @@ def _inside(valid: np.ndarray, rim_px: int) -> np.ndarray:
     return cv2.erode(valid.astype(np.uint8), kernel) > 0
 
 
-def _warp_map(view: TextureView, plane: TexturePlane, prewarp) -> np.ndarray:
-    """(h, w, 2) float32 pixel positions where each neutral pixel's skin is expected in the
-    expressive image: its surface point moved by ``prewarp`` (identity off the surface)."""
-    rows, cols = np.mgrid[0:plane.height, 0:plane.width].astype(np.float32)
-    where = np.stack([cols, rows], axis=-1)
-    seen = view.points[view.valid]
-    moved = seen + np.asarray(prewarp(seen), dtype=np.float64)
-    ok = np.isfinite(moved).all(axis=1)
-    target = where[view.valid]
-    target[ok] = plane.pixels(moved[ok]).astype(np.float32)
-    where[view.valid] = target
-    return where
+class _Tracker:
+    """The two scans' views and patterns in one plane, ready to be matched (again)."""
+
+    def __init__(self, neutral: FaceGrid, plane: TexturePlane, views, patterns, pixel_mm: float,
+                 options: TextureOptions):
+        self.neutral, self.plane, self.views, self.options = neutral, plane, views, options
+        self.neutral_pattern = _eight_bit(patterns[0])
+        self.expressive_pattern = patterns[1]
+        self.expressive_inside = _inside(views[1].valid, options.rim_px).astype(np.float32)
+        self.valid = neutral.mask.reshape(-1)
+        self.begin = plane.pixels(neutral.points.reshape(-1, 3)[self.valid])
+        inside = _inside(views[0].valid, options.rim_px).astype(np.float32)
+        self.begin_inside = bilinear(inside, self.begin[:, 0], self.begin[:, 1]) > 0.999
+        strength = bilinear(_texture_strength(patterns[0], _STRENGTH_WINDOW_MM / pixel_mm),
+                            self.begin[:, 0], self.begin[:, 1])
+        # a pattern of unit local contrast has strength ~0.02 where it is textured in both
+        # directions; flat skin tends to 0
+        self.strength_weight = strength / (strength + _STRENGTH_HALF)
+
+    def _warp(self, displacement: np.ndarray) -> np.ndarray:
+        """(h, w, 2) float32 pixel positions where each neutral pixel's skin is expected
+        in the expressive image: its surface point moved by the per-vertex displacement
+        (interpolated over the neutral grid's triangles; identity off the surface)."""
+        view = self.views[0]
+        mesh_index = np.flatnonzero(self.valid)
+        moved = interpolate_pixels(np.nan_to_num(displacement.reshape(-1, 3)[mesh_index]),
+                                   self.neutral.mesh().faces, view.triangle, view.barycentric)
+        rows, cols = np.mgrid[0:self.plane.height, 0:self.plane.width].astype(np.float32)
+        where = np.stack([cols, rows], axis=-1)
+        seen = view.valid
+        where[seen] = self.plane.pixels(view.points[seen] + moved[seen]).astype(np.float32)
+        return where
+
+    def match(self, displacement=None) -> TextureMatches | None:
+        """Flow both ways and lift the consistent matches; None when too few are."""
+        import cv2
+
+        start = time.perf_counter()
+        expressive, inside = self.expressive_pattern, self.expressive_inside
+        warp = None
+        if displacement is not None:
+            warp = self._warp(displacement)
+            expressive = cv2.remap(expressive, warp, None, cv2.INTER_LINEAR, borderValue=0)
+            inside = cv2.remap(inside, warp, None, cv2.INTER_LINEAR, borderValue=0)
+        flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        expressive = _eight_bit(expressive)
+        forward = flow.calc(self.neutral_pattern, expressive, None)
+        backward = flow.calc(expressive, self.neutral_pattern, None)
+        step = bilinear(forward, self.begin[:, 0], self.begin[:, 1])
+        land = self.begin + step
+        back = bilinear(backward, land[:, 0], land[:, 1])
+        consistency = np.linalg.norm(step + back, axis=1)
+        matched = (consistency < self.options.consistency_px) & self.begin_inside \
+            & (bilinear(inside, land[:, 0], land[:, 1]) > 0.999)
+        matched_fraction = float(matched.mean()) if len(matched) else 0.0
+        if matched_fraction < self.options.min_matched_fraction:
+            return None
+        if warp is not None:
+            land = bilinear(warp, land[:, 0], land[:, 1]).astype(np.float64)
+        landed = bilinear(np.nan_to_num(self.views[1].points), land[:, 0], land[:, 1])
+        shape = self.neutral.points.shape
+        targets = np.full((self.valid.size, 3), np.nan)
+        targets[np.flatnonzero(self.valid)[matched]] = landed[matched]
+        confidence = np.zeros(self.valid.shape)
+        confidence[self.valid] = np.where(matched, self.strength_weight, 0.0)
+        return TextureMatches(targets.reshape(shape), confidence.reshape(shape[:2]), matched_fraction,
+                              time.perf_counter() - start, self)
 
 
 def track_texture(neutral: FaceGrid, expressive: FaceGrid,
-                  options: TextureOptions = TextureOptions(), prewarp=None) -> TextureMatches | None:
+                  options: TextureOptions = TextureOptions()) -> TextureMatches | None:
     """Match each vertex of a neutral grid to the expressive scan by its skin texture.
 
     Parameters
@@ -241,10 +346,6 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid,
         Two scans of one person in one frame (the expressive one aligned rigidly onto the
         neutral one), each with its colour image.
     options : TextureOptions
-    prewarp : callable, optional
-        A first guess of the motion, (m, 3) neutral points -> (m, 3) displacements (mm):
-        the expressive image is warped back by it before the flow, so the flow only
-        has to find what the guess missed.
 
     Returns
     -------
@@ -252,8 +353,6 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid,
     cannot be used (a grid without an image, an image too dark or without texture, or a
     flow that fails its consistency check on most of the face).
     """
-    import cv2
-
     start = time.perf_counter()
     for name, grid in (("neutral", neutral), ("expressive", expressive)):
         if grid.image is None:
@@ -275,44 +374,19 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid,
                           "255): the motion comes from the geometry alone", TextureWarning, stacklevel=2)
             return None
     sigma_px = options.shading_sigma_mm / pixel_mm
-    patterns = [_pattern(view, sigma_px) for view in views]
-    expressive_pattern = patterns[1]
-    expressive_inside = _inside(views[1].valid, options.rim_px).astype(np.float32)
-    warp = None
-    if prewarp is not None:
-        warp = _warp_map(views[0], plane, prewarp)
-        expressive_pattern = cv2.remap(patterns[1], warp, None, cv2.INTER_LINEAR, borderValue=0)
-        expressive_inside = cv2.remap(expressive_inside, warp, None, cv2.INTER_LINEAR, borderValue=0)
-    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    forward = flow.calc(_eight_bit(patterns[0]), _eight_bit(expressive_pattern), None)
-    backward = flow.calc(_eight_bit(expressive_pattern), _eight_bit(patterns[0]), None)
-
-    flat_valid = neutral.mask.reshape(-1)
-    points = neutral.points.reshape(-1, 3)[flat_valid]
-    begin = plane.pixels(points)
-    step = bilinear(forward, begin[:, 0], begin[:, 1])
-    land = begin + step
-    back = bilinear(backward, land[:, 0], land[:, 1])
-    consistency = np.linalg.norm(step + back, axis=1)
-    inside_neutral = bilinear(_inside(views[0].valid, options.rim_px).astype(np.float32), begin[:, 0], begin[:, 1])
-    inside_expressive = bilinear(expressive_inside, land[:, 0], land[:, 1])
-    matched = (consistency < options.consistency_px) & (inside_neutral > 0.999) & (inside_expressive > 0.999)
-    matched_fraction = float(matched.mean()) if len(matched) else 0.0
-    if matched_fraction < options.min_matched_fraction:
-        warnings.warn(f"texture tracking matched only {100 * matched_fraction:.0f} % of the face "
-                      f"(at least {100 * options.min_matched_fraction:.0f} % needed): the motion comes "
-                      "from the geometry alone", TextureWarning, stacklevel=2)
+    for name, view in zip(("neutral", "expressive"), views):
+        detail = _detail_rms(view, sigma_px)
+        if detail < _MIN_DETAIL_GREY:
+            warnings.warn(f"the {name} scan's colour image shows no texture (detail of {detail:.2f} grey "
+                          f"levels rms, at least {_MIN_DETAIL_GREY} needed): the motion comes from the "
+                          "geometry alone", TextureWarning, stacklevel=2)
+            return None
+    tracker = _Tracker(neutral, plane, views, [_pattern(view, sigma_px) for view in views], pixel_mm, options)
+    matches = tracker.match()
+    if matches is None:
+        warnings.warn(f"texture tracking matched less than {100 * options.min_matched_fraction:.0f} % of the "
+                      "face (the flow failed its consistency check): the motion comes from the geometry "
+                      "alone", TextureWarning, stacklevel=2)
         return None
-    strength = bilinear(_texture_strength(patterns[0], _STRENGTH_WINDOW_MM / pixel_mm), begin[:, 0], begin[:, 1])
-    # a pattern of unit local contrast has strength ~0.02 where it is textured in both
-    # directions; flat skin tends to 0
-    confidence = np.where(matched, strength / (strength + _STRENGTH_HALF), 0.0)
-    if warp is not None:
-        land = bilinear(warp, land[:, 0], land[:, 1]).astype(np.float64)
-    landed = bilinear(np.nan_to_num(views[1].points), land[:, 0], land[:, 1])
-    targets = np.full(neutral.points.shape, np.nan).reshape(-1, 3)
-    targets[np.flatnonzero(flat_valid)[matched]] = landed[matched]
-    full_confidence = np.zeros(flat_valid.shape)
-    full_confidence[flat_valid] = confidence
-    return TextureMatches(targets.reshape(neutral.points.shape), full_confidence.reshape(neutral.mask.shape),
-                          matched_fraction, time.perf_counter() - start)
+    matches.seconds = time.perf_counter() - start
+    return matches
