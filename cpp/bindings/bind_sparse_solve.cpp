@@ -87,6 +87,7 @@ void bind_sparse_solve(nb::module_& m) {
         .def_prop_ro("max_pivot", &PatternCholesky::max_pivot)
         .def_prop_ro("factor_nonzeros", &PatternCholesky::factor_nonzeros)
         .def_prop_ro("supernodes", &PatternCholesky::supernodes)
+        .def_prop_ro("thread_groups", &PatternCholesky::thread_groups)
         .def_prop_ro("factor_multiply_adds", &PatternCholesky::factor_multiply_adds)
         .def_prop_ro("ordering", [](const PatternCholesky& self) {
             const auto& order = self.ordering();

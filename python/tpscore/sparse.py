@@ -165,8 +165,11 @@ class PatternCholesky:
     The default method is a supernodal Cholesky factorisation P A P^T = L L^T: the
     columns of L that share one row structure are grouped into dense blocks, and
     nearly all the arithmetic runs in dense matrix-product kernels (compiled for
-    AVX2 + FMA too, and chosen at run time), with disjoint parts of the elimination
-    tree on separate threads; the results do not depend on the thread count.
+    AVX2 + FMA too, and chosen at run time). Factorisations large enough to gain
+    from threads (about 2,000 unknowns of a lattice system and up) run disjoint parts
+    of the elimination tree on separate threads (as many as
+    :func:`tpscore.num_threads` gives when the pattern is analysed); the results do
+    not depend on the thread count.
     ``method="simplicial"`` is the column-by-column L D L^T factorisation (Eigen's
     SimplicialLDLT) the supernodal one is checked and timed against.
 

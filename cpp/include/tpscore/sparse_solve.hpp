@@ -66,9 +66,11 @@ private:
 /// (tpscore/dense_cholesky.hpp), so nearly all the arithmetic runs in blocked
 /// matrix-product kernels instead of scalar sparse loops.
 ///
-/// Disjoint subtrees of the supernode tree are factorised on separate threads. Every
-/// supernode sums its inputs in one fixed order whatever the thread it runs on, so
-/// the factor, and every solution, does not depend on the thread count.
+/// Disjoint subtrees of the supernode tree are factorised on separate threads (split
+/// for num_threads() at construction), when the factorisation is large enough to gain
+/// from it (40 million multiply-adds). Every supernode sums its inputs in one fixed
+/// order whatever the thread it runs on, so the factor, and every solution, does not
+/// depend on the thread count.
 ///
 /// Not safe to factorize() while another thread solves.
 class PatternCholesky {
@@ -105,6 +107,9 @@ public:
     std::int64_t factor_nonzeros() const { return factor_nonzeros_; }
     /// Number of supernodes.
     std::int64_t supernodes() const { return static_cast<std::int64_t>(first_column_.size()) - 1; }
+    /// Groups of disjoint subtrees that threads factorise concurrently (0: the whole
+    /// factorisation runs on the calling thread).
+    std::int64_t thread_groups() const { return static_cast<std::int64_t>(groups_.size()); }
     /// Multiply-adds of one factorize(): a measure of its cost.
     double factor_multiply_adds() const { return total_work_; }
     /// The order of elimination actually used: entry k is the unknown eliminated k-th.
