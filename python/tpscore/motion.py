@@ -45,7 +45,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import _core
-from .sparse import PatternCholesky
+from .sparse import PatternCholesky, grid_nested_dissection
 from .spatial import MeshSurface
 
 __all__ = ["MotionOptions", "DenseMotion", "BSplineLattice", "LatticeSystem", "symmetric_blocks",
@@ -343,7 +343,11 @@ class LatticeSystem:
         self.basis = lattice._stencil_matrix(nodes, weights)
         self._gram = np.empty((lattice.n_nodes, len(_NEIGHBOUR_OFFSETS), len(SYMMETRIC_ENTRIES)))
         self._build_pattern()
-        self._factor = PatternCholesky(self.indptr, self.indices)
+        # nested dissection of the node grid, the three components of a node kept
+        # together (they share one row structure, so they form one 3-wide block)
+        node_order = grid_nested_dissection(lattice.shape, reach=3)
+        self._factor = PatternCholesky(self.indptr, self.indices,
+                                       ordering=(node_order[:, None] + lattice.n_nodes * np.arange(3)).ravel())
 
     def _build_pattern(self) -> None:
         n = self.lattice.n_nodes
