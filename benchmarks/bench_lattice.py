@@ -1,4 +1,4 @@
-"""The dense registration's linear systems: tpscore.motion.LatticeSystem against the
+"""The dense registration's linear systems: tpscore.lattice.LatticeSystem against the
 SimplicialLDLT path it replaced and against SciPy.
 
 One registration iteration forms the normal equations of a point-to-plane fit of a
@@ -27,7 +27,7 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from tpscore.motion import BSplineLattice, LatticeSystem, symmetric_blocks
+from tpscore.lattice import BSplineLattice, LatticeSystem, symmetric_blocks
 from tpscore.reference import lattice as reference
 from tpscore.sparse import PatternCholesky
 

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import tpscore
-from tpscore import datasets, io
+from tpscore import datasets
+from tpscore.face import io
 from tpscore.expression_transfer import animate
 
 

@@ -56,7 +56,7 @@ def _without_common_rendering():
     image directly, by the affine map of the grid's x, y to its u,v, including where the
     grid has a hole and the background beyond the scan, and the pattern is taken over
     the whole plane. Matches are still lifted only where the surface is."""
-    from tpscore.image import grey_levels, sample_image
+    from tpscore.face.image import grey_levels, sample_image
 
     original_render, original_pattern = texture.render_texture, texture._pattern
 

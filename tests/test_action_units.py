@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from tpscore.action_units import ActionUnit, ActionUnitLibrary, ControlPoint, default_library
-from tpscore.average_face import load_average_face
+from tpscore.face.average_face import load_average_face
 
 
 @pytest.fixture(scope="module")

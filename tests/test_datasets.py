@@ -22,7 +22,7 @@ from tpscore.datasets import (
     random_identity,
     sample_subjects,
 )
-from tpscore.landmarks import LANDMARK_NAMES, MIRROR_LANDMARK, landmark_index
+from tpscore.face.landmarks import LANDMARK_NAMES, MIRROR_LANDMARK, landmark_index
 
 IDENTITIES = [None, 1, 7, 42, 123]
 UPPER_FACE_AUS = ("1", "2", "4")

@@ -7,10 +7,10 @@ import pytest
 import tpscore
 from tpscore import datasets
 from tpscore.expression_transfer import TransferOptions
-from tpscore.landmarks import landmark_index
+from tpscore.face.landmarks import landmark_index
 from tpscore.motion import DenseMotion, MirroredMotion
-from tpscore.preprocess import resample_scan
-from tpscore.regions import region_boundary
+from tpscore.face.grid import resample_scan
+from tpscore.face.regions import region_boundary
 
 VARIANTS = {"default": TransferOptions(), "thesis": TransferOptions.thesis()}
 

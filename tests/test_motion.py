@@ -3,12 +3,13 @@ import pytest
 import scipy.sparse as sp
 
 from tpscore import _core, datasets
-from tpscore.landmarks import landmark_index
-from tpscore.motion import (BSplineLattice, LatticeSystem, MirroredMotion, MotionOptions,
-                           curvature_image, face_gradients, symmetric_blocks, refine_landmark_motion, refined_pair_trust,
+from tpscore.face.landmarks import landmark_index
+from tpscore.lattice import BSplineLattice, LatticeSystem, symmetric_blocks
+from tpscore.motion import (MirroredMotion, MotionOptions,
+                           curvature_image, face_gradients, refine_landmark_motion, refined_pair_trust,
                            grid_normals, register_surfaces, rest_pull_per_node)
-from tpscore.normalise import FrameTransform
-from tpscore.preprocess import FaceGrid, resample_scan
+from tpscore.face.normalise import FrameTransform
+from tpscore.face.grid import FaceGrid, resample_scan
 from tpscore.reference import lattice as reference
 from tpscore.sparse import SparseCholesky
 from tpscore.spatial import MeshSurface

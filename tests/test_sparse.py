@@ -241,7 +241,7 @@ def test_pattern_cholesky_diagnoses_bad_values_and_keeps_no_factor_after_a_failu
 def lattice_system(width_mm, height_mm, spacing, samples_per_side, seed):
     """A registration-like system on a B-spline lattice: the data term of random
     point-to-plane pairs plus the bending energy and a small ridge (SPD)."""
-    from tpscore.motion import BSplineLattice, LatticeSystem, symmetric_blocks
+    from tpscore.lattice import BSplineLattice, LatticeSystem, symmetric_blocks
 
     rng = np.random.default_rng(seed)
     x, y = np.meshgrid(np.linspace(0, width_mm, samples_per_side), np.linspace(0, height_mm, samples_per_side))

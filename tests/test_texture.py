@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tpscore.motion import MotionOptions, register_surfaces
-from tpscore.preprocess import FaceGrid
+from tpscore.face.grid import FaceGrid
 from tpscore.spatial import MeshSurface
 from tpscore.texture import TextureOptions, TextureWarning, track_texture
 

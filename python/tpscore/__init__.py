@@ -6,19 +6,18 @@ kernels in ``tpscore._core`` are private. Procedural faces are in
 """
 from __future__ import annotations
 
-from . import datasets, landmarks, render
+from . import datasets, render
+from .face import landmarks
 from ._core import num_threads, set_num_threads
 from .action_units import ActionUnit, ActionUnitLibrary, ControlPoint, default_library
-from .average_face import AverageFace, build_average_face, load_average_face
+from .face.average_face import AverageFace, build_average_face, load_average_face
 from .expression_transfer import (
     Animation,
     ExpressionModel,
-    NormalisedFace,
     TransferOptions,
     TransferResult,
     animate,
     model_expression,
-    normalise_face,
     transfer,
 )
 from .alignment import RigidAlignment, align_rigid, fit_mirror_symmetry
@@ -28,7 +27,7 @@ from .calibration import AxesCalibration, axes_calibration, calibrate
 from .correspondence import FeatureMesh, curvature_features
 from .csrbf import CSRBF, ConvergenceError, wendland
 from .elastic import ElasticFace, ExpressionSet
-from .io import (
+from .face.io import (
     BntScan,
     read_bnt,
     read_landmarks,
@@ -50,8 +49,8 @@ from .mesh import (
     voronoi_areas,
 )
 from .muscles import LinearMuscle, MuscleModel, SphincterMuscle
-from .normalise import FrameTransform, similarity_transform, thesis_affine_transform
-from .preprocess import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, resample_scan
+from .face.normalise import FrameTransform, NormalisedFace, normalise_face, similarity_transform, thesis_affine_transform
+from .face.grid import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, resample_scan
 from .rbf import RBF, RBF_KERNELS, TPS
 from .sparse import PatternCholesky, SparseCholesky
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh

@@ -22,7 +22,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .landmarks import anchor_point, validate_anchor
+from .face.landmarks import anchor_point, validate_anchor
 
 __all__ = [
     "ControlPoint",

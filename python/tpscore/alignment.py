@@ -29,9 +29,9 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .landmarks import MIRROR_LANDMARK
-from .normalise import FrameTransform, similarity_transform
-from .preprocess import FaceGrid
+from .face.landmarks import MIRROR_LANDMARK
+from .face.normalise import FrameTransform, similarity_transform
+from .face.grid import FaceGrid
 from .spatial import MeshSurface
 
 __all__ = ["rigid_landmark_fit", "align_rigid", "RigidAlignment", "fit_mirror_symmetry"]

@@ -73,8 +73,9 @@ def _grid_shape(text: str) -> tuple[int, int]:
 
 
 def run_transfer(args) -> int:
-    from . import io, render
-    from .preprocess import load_scan
+    from . import render
+    from .face import io
+    from .face.grid import load_scan
     from .expression_transfer import TransferOptions, transfer
 
     progress = _Progress(args.quiet)
@@ -143,8 +144,8 @@ def _distance_to_truth(result, truth, target) -> tuple[np.ndarray, np.ndarray]:
 
 
 def run_build_afm(args) -> int:
-    from .average_face import build_average_face
-    from .average_face import afm_faces
+    from .face.average_face import build_average_face
+    from .face.average_face import afm_faces
 
     progress = _Progress(args.quiet)
     faces = afm_faces()

@@ -13,8 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import datasets, io, render
-from .preprocess import load_scan
+from . import datasets, render
+from .face import io
+from .face.grid import load_scan
 from .expression_transfer import transfer
 
 __all__ = ["run_demo", "DEMO_EXPRESSIONS"]

@@ -40,7 +40,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from ._validation import as_faces, as_points, as_positive, check_finite
-from .landmarks import N_LANDMARKS, anchor_point, landmark_index, validate_anchor
+from .face.landmarks import N_LANDMARKS, anchor_point, landmark_index, validate_anchor
 from .mesh import cotan_laplacian, voronoi_areas
 from .sparse import SparseCholesky
 from .spatial import MeshSurface

@@ -2,8 +2,8 @@
 
 The method (see DESIGN.md, method 1):
 
-1. Every face is resampled onto a grid (:mod:`tpscore.preprocess`) and brought into the
-   reference face's frame (:mod:`tpscore.normalise`).
+1. Every face is resampled onto a grid (:mod:`tpscore.face.grid`) and brought into the
+   reference face's frame (:mod:`tpscore.face.normalise`).
 2. The AU's control points, defined once on the reference face
    (:mod:`tpscore.action_units`), are mapped onto the neutral source with the landmark
    TPS (reference landmarks -> source landmarks) and snapped onto its surface.
@@ -42,20 +42,18 @@ from scipy import ndimage
 from .action_units import ActionUnit, ActionUnitLibrary, Activation, default_library
 from .alignment import align_rigid, fit_mirror_symmetry
 from .csrbf import CSRBF
-from .landmarks import landmark_index, landmark_map
+from .face.landmarks import landmark_index, landmark_map
 from .motion import (AdaptedMotion, DenseMotion, MirroredMotion, MotionOptions, adapt_motion,
                      curvature_image, register_surfaces)
-from .normalise import FrameTransform, landmark_transform
-from .preprocess import FaceGrid
+from .face.normalise import FrameTransform, NormalisedFace, landmark_transform, normalise_face
+from .face.grid import FaceGrid
 from .rbf import TPS
-from .regions import region_weight, side_weight, smoothstep
+from .face.regions import region_weight, side_weight, smoothstep
 from .spatial import KDTree, MeshSurface
 from .texture import track_texture
 
 __all__ = [
     "TransferOptions",
-    "NormalisedFace",
-    "normalise_face",
     "place_control_points",
     "ControlPointMotion",
     "ExpressionModel",
@@ -78,7 +76,7 @@ class TransferOptions:
     Attributes
     ----------
     normalisation : {"similarity", "affine"}
-        Pose/size normalisation to the reference (see :mod:`tpscore.normalise`).
+        Pose/size normalisation to the reference (see :mod:`tpscore.face.normalise`).
     alignment : {"rigid", "normalise"}
         How the source's expressive scan joins its neutral scan: ``"rigid"`` aligns it
         rigidly onto the neutral scan (landmarks, then ICP on the still region of the
@@ -218,70 +216,6 @@ class TransferOptions:
 
 
 # --------------------------------------------------------------------------- faces
-
-@dataclass
-class NormalisedFace:
-    """A face grid in the reference frame, with the transform from its scan frame."""
-
-    grid: FaceGrid
-    transform: FrameTransform
-    _surface: MeshSurface | None = field(default=None, repr=False)
-    _tree: KDTree | None = field(default=None, repr=False)
-    _valid_index: np.ndarray | None = field(default=None, repr=False)
-
-    @property
-    def landmarks(self) -> np.ndarray:
-        return self.grid.landmarks
-
-    def _build(self):
-        if self._tree is None:
-            flat = self.grid.points.reshape(-1, 3)
-            self._valid_index = np.flatnonzero(self.grid.mask.ravel())
-            if len(self._valid_index) < 3:
-                raise ValueError("the face has fewer than 3 valid vertices")
-            self._tree = KDTree(flat[self._valid_index])
-            mesh = self.grid.mesh()
-            self._surface = MeshSurface(mesh.vertices, mesh.faces) if len(mesh.faces) else None
-
-    def snap(self, points, mode: str) -> np.ndarray:
-        """Snap (k, 3) points onto this face: closest surface point or nearest vertex."""
-        self._build()
-        points = np.asarray(points, dtype=np.float64)
-        if mode == "surface" and self._surface is not None:
-            return self._surface.closest_point(points).points
-        _, nearest = self._tree.query(points)
-        return self._tree.points[nearest]
-
-    def nearest_vertex(self, points) -> np.ndarray:
-        """Flat grid index (into H*W) of the valid vertex nearest to each (k, 3) point."""
-        self._build()
-        _, nearest = self._tree.query(np.asarray(points, dtype=np.float64))
-        return self._valid_index[nearest]
-
-    def surface(self) -> MeshSurface:
-        self._build()
-        if self._surface is None:
-            raise ValueError("the face has no triangles (too few valid grid vertices)")
-        return self._surface
-
-
-def normalise_face(grid: FaceGrid, reference_landmarks, method: str = "similarity") -> NormalisedFace:
-    """Bring a face grid into the reference frame by its landmarks.
-
-    The affine method needs four particular landmarks; when one is missing, the face
-    is normalised by the similarity over all landmarks instead, with a warning.
-    """
-    try:
-        transform = landmark_transform(grid.landmarks, reference_landmarks, method)
-    except ValueError as exc:
-        if method != "affine" or "missing" not in str(exc):
-            raise
-        warnings.warn(f"{exc}; using the similarity normalisation for this face", stacklevel=2)
-        transform = landmark_transform(grid.landmarks, reference_landmarks, "similarity")
-    moved = replace(grid, points=transform.apply(grid.points),
-                    landmarks=transform.apply(grid.landmarks))
-    return NormalisedFace(moved, transform)
-
 
 def mouth_width(landmarks) -> float:
     """Distance between the mouth corners (mm), NaN when one is missing."""
@@ -739,7 +673,7 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
     Parameters
     ----------
     source_neutral, source_expressive, target : FaceGrid
-        Resampled faces with landmarks (see :func:`tpscore.preprocess.load_scan`).
+        Resampled faces with landmarks (see :func:`tpscore.face.grid.load_scan`).
     action_units : str, mapping or sequence
         What to transfer: ``"12"``, ``"12L"``, ``"1,4,15"``, ``"sadness"``,
         ``{"12": 0.5}`` (see :meth:`ActionUnitLibrary.parse`).
@@ -752,7 +686,7 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
     options : TransferOptions
         Pipeline choices; ``TransferOptions.thesis()`` is the method as published.
     """
-    from .average_face import load_average_face
+    from .face.average_face import load_average_face
 
     clock = time.perf_counter()
     timings = {}

@@ -36,7 +36,7 @@ import numpy as np
 
 from ._validation import as_positive, check_finite
 from .elastic import ElasticFace
-from .landmarks import landmark_index
+from .face.landmarks import landmark_index
 from .spatial import MeshSurface
 
 __all__ = [

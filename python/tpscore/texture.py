@@ -38,8 +38,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._validation import as_positive
-from .image import bilinear, grey_levels
-from .preprocess import FaceGrid
+from .face.image import bilinear, grey_levels
+from .face.grid import FaceGrid
 from .raster import interpolate_pixels, rasterise
 
 __all__ = ["TextureOptions", "TextureMatches", "TextureWarning", "track_texture", "render_texture",

@@ -143,7 +143,7 @@ def landmark_map(from_landmarks, to_landmarks, *, smoothing: float = 0.0,
     Raises a ValueError that says how many landmarks remain when fewer than five are
     present in both faces (a 3D TPS needs five non-coplanar pairs).
     """
-    from .rbf import TPS  # the kernels import this module; import them late
+    from ..rbf import TPS  # the kernels import this module; import them late
 
     a = np.asarray(from_landmarks, dtype=np.float64)
     b = np.asarray(to_landmarks, dtype=np.float64)

@@ -30,7 +30,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._validation import as_positive
+from .._validation import as_positive
 from .image import as_colour_image as _as_colour_image
 from .image import check_image_fits, sample_image
 from .io import BntScan, _as_landmark_array, read_bnt, read_image, read_landmarks, read_mesh
@@ -295,7 +295,7 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
     spaced. z is linear over a triangulation of the valid points, as a Delaunay-based
     ``griddata(..., method="linear")`` computes it:
 
-    - regular source grids (a :class:`~tpscore.io.BntScan`, an (R, C, 3) depth image,
+    - regular source grids (a :class:`~tpscore.face.io.BntScan`, an (R, C, 3) depth image,
       or an (n, 3) cloud whose x, y lie on a lattice) are interpolated cell by cell:
       a cell with four valid corners is split along its (r, c)-(r+1, c+1) diagonal;
       a cell with three valid corners uses the triangle they form; a point on a cell

@@ -15,11 +15,14 @@ scan's own frame.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import warnings
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ._validation import as_points
+from .._validation import as_points
+from ..spatial import KDTree, MeshSurface
+from .grid import FaceGrid
 from .landmarks import N_LANDMARKS, landmark_index
 
 __all__ = [
@@ -29,6 +32,8 @@ __all__ = [
     "landmark_transform",
     "AFFINE_LANDMARKS",
     "NORMALISATION_METHODS",
+    "NormalisedFace",
+    "normalise_face",
 ]
 
 #: The four landmarks of the method's affine normalisation (B's columns).
@@ -190,3 +195,67 @@ def landmark_transform(landmarks, reference, method: str = "similarity") -> Fram
     if method == "none":
         return FrameTransform.identity()
     raise ValueError(f"unknown normalisation method {method!r}; use one of {NORMALISATION_METHODS}")
+
+
+@dataclass
+class NormalisedFace:
+    """A face grid in the reference frame, with the transform from its scan frame."""
+
+    grid: FaceGrid
+    transform: FrameTransform
+    _surface: MeshSurface | None = field(default=None, repr=False)
+    _tree: KDTree | None = field(default=None, repr=False)
+    _valid_index: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def landmarks(self) -> np.ndarray:
+        return self.grid.landmarks
+
+    def _build(self):
+        if self._tree is None:
+            flat = self.grid.points.reshape(-1, 3)
+            self._valid_index = np.flatnonzero(self.grid.mask.ravel())
+            if len(self._valid_index) < 3:
+                raise ValueError("the face has fewer than 3 valid vertices")
+            self._tree = KDTree(flat[self._valid_index])
+            mesh = self.grid.mesh()
+            self._surface = MeshSurface(mesh.vertices, mesh.faces) if len(mesh.faces) else None
+
+    def snap(self, points, mode: str) -> np.ndarray:
+        """Snap (k, 3) points onto this face: closest surface point or nearest vertex."""
+        self._build()
+        points = np.asarray(points, dtype=np.float64)
+        if mode == "surface" and self._surface is not None:
+            return self._surface.closest_point(points).points
+        _, nearest = self._tree.query(points)
+        return self._tree.points[nearest]
+
+    def nearest_vertex(self, points) -> np.ndarray:
+        """Flat grid index (into H*W) of the valid vertex nearest to each (k, 3) point."""
+        self._build()
+        _, nearest = self._tree.query(np.asarray(points, dtype=np.float64))
+        return self._valid_index[nearest]
+
+    def surface(self) -> MeshSurface:
+        self._build()
+        if self._surface is None:
+            raise ValueError("the face has no triangles (too few valid grid vertices)")
+        return self._surface
+
+
+def normalise_face(grid: FaceGrid, reference_landmarks, method: str = "similarity") -> NormalisedFace:
+    """Bring a face grid into the reference frame by its landmarks.
+
+    The affine method needs four particular landmarks; when one is missing, the face
+    is normalised by the similarity over all landmarks instead, with a warning.
+    """
+    try:
+        transform = landmark_transform(grid.landmarks, reference_landmarks, method)
+    except ValueError as exc:
+        if method != "affine" or "missing" not in str(exc):
+            raise
+        warnings.warn(f"{exc}; using the similarity normalisation for this face", stacklevel=2)
+        transform = landmark_transform(grid.landmarks, reference_landmarks, "similarity")
+    moved = replace(grid, points=transform.apply(grid.points),
+                    landmarks=transform.apply(grid.landmarks))
+    return NormalisedFace(moved, transform)

@@ -19,9 +19,9 @@ from typing import Sequence
 import numpy as np
 
 from .landmarks import LANDMARK_NAMES, N_LANDMARKS, landmark_index, landmark_map
-from .normalise import FrameTransform, similarity_transform
-from .preprocess import FaceGrid
-from .spatial import MeshSurface
+from .normalise import FrameTransform, NormalisedFace, similarity_transform
+from .grid import FaceGrid
+from ..spatial import MeshSurface
 
 __all__ = ["AverageFace", "build_average_face", "load_average_face", "consensus_landmarks", "afm_faces",
            "canonical_frame"]
@@ -52,7 +52,6 @@ class AverageFace:
         """The AFM as a face already in the reference frame (built once: it caches the
         surface queries every transfer makes on it)."""
         if self._normalised is None:
-            from .expression_transfer import NormalisedFace
             self._normalised = NormalisedFace(self.grid, FrameTransform.identity())
         return self._normalised
 
@@ -198,7 +197,7 @@ def load_average_face() -> AverageFace:
 def afm_faces(shape=(150, 150)) -> list[FaceGrid]:
     """The embedded procedural faces (tpscore.datasets) resampled as face grids: the
     database the shipped AFM is built from."""
-    from .datasets import embedded_faces
-    from .preprocess import resample_scan
+    from ..datasets import embedded_faces
+    from .grid import resample_scan
 
     return [resample_scan(scan.points, scan.landmarks, shape) for scan in embedded_faces()]

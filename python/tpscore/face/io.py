@@ -9,7 +9,7 @@ Formats:
   with a u,v map and vertex colours (:func:`write_mesh`).
 
 Landmarks are always a (22, 3) float64 array in Bosphorus order (see
-:mod:`tpscore.landmarks`) with NaN rows for the ones that are missing. Every reader
+:mod:`tpscore.face.landmarks`) with NaN rows for the ones that are missing. Every reader
 raises ValueError naming the file and what is wrong with it; every writer writes to
 a temporary file beside the target and renames it, so nothing is left half-written.
 Units are millimetres.
@@ -729,7 +729,7 @@ def write_mesh(path, vertices, faces, *, uv=None, vertex_colors=None) -> None:
     path : str or PathLike
         ``.obj`` (text) or ``.ply`` (binary little-endian, float64 coordinates).
     vertices : (n, 3) array-like, mm, all finite (drop masked vertices first, for
-        example with :meth:`tpscore.preprocess.FaceGrid.mesh`).
+        example with :meth:`tpscore.face.grid.FaceGrid.mesh`).
     faces : (m, 3) integer array-like (m may be 0).
     uv : (n, 2) array-like, optional
         Per-vertex texture coordinates, written as given: OBJ ``vt`` lines with
@@ -739,7 +739,7 @@ def write_mesh(path, vertices, faces, *, uv=None, vertex_colors=None) -> None:
     vertex_colors : (n, 3) or (n, 4), optional
         uint8 in [0, 255] or float in [0, 1]: OBJ ``v x y z r g b``, PLY red/green/blue/alpha.
     """
-    from ._validation import as_faces, as_points
+    from .._validation import as_faces, as_points
 
     vertices = as_points(vertices, "vertices")
     faces = as_faces(np.asarray(faces).reshape(-1, 3) if np.size(faces) == 0 else faces, len(vertices))
