@@ -22,7 +22,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .face.landmarks import anchor_point, validate_anchor
+from .face.landmarks import AnchoredPoint
 
 __all__ = [
     "ControlPoint",
@@ -34,33 +34,20 @@ __all__ = [
 ]
 
 REGIONS = ("upper", "lower")
-_SIDES = ("left", "right", "centre")
 _KINDS = ("muscle", "wrinkle")
 
 
-@dataclass(frozen=True)
-class ControlPoint:
-    """One named control point of an AU, defined relative to the landmarks."""
+@dataclass(frozen=True, kw_only=True)
+class ControlPoint(AnchoredPoint):
+    """One named control point of an AU: an anchored point of the muscle it follows
+    (``kind="muscle"``) or of a fold the skin makes (``kind="wrinkle"``)."""
 
-    name: str
     kind: str
-    side: str
-    at: Mapping[str, float]
-    offset_mm: tuple[float, float] = (0.0, 0.0)
-    note: str = ""
 
     def __post_init__(self):
+        super().__post_init__()
         if self.kind not in _KINDS:
             raise ValueError(f"control point {self.name!r}: kind must be one of {_KINDS}, got {self.kind!r}")
-        if self.side not in _SIDES:
-            raise ValueError(f"control point {self.name!r}: side must be one of {_SIDES}, got {self.side!r}")
-        at, offset = validate_anchor(f"control point {self.name!r}", self.at, self.offset_mm)
-        object.__setattr__(self, "at", at)
-        object.__setattr__(self, "offset_mm", offset)
-
-    def position_xy(self, landmarks: np.ndarray) -> np.ndarray:
-        """(x, y) of the point on a face with the given (22, 3) landmarks (reference frame)."""
-        return anchor_point(landmarks, self.at, f"control point {self.name!r}")[:2] + self.offset_mm
 
 
 @dataclass(frozen=True)

@@ -5,6 +5,9 @@ array, never a guess.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Mapping
+
 import numpy as np
 
 __all__ = [
@@ -91,6 +94,49 @@ def validate_anchor(owner: str, at, offset_mm) -> tuple[dict[str, float], tuple[
     if len(offset) != 2 or not np.isfinite(offset).all():
         raise ValueError(f"{owner}: offset_mm must be two finite numbers")
     return weights, offset
+
+
+#: The sides an anchored point can be on (the subject's left and right).
+SIDES = ("left", "right", "centre")
+
+
+@dataclass(frozen=True)
+class AnchoredPoint:
+    """A named place on a face, defined relative to its landmarks: the weighted mean of
+    the landmarks named in ``at`` (weights > 0) plus an (x, y) offset in mm. Control
+    points of every method are anchored points.
+
+    Attributes
+    ----------
+    name : str
+    side : {"left", "right", "centre"}
+        The side of the face it is on (the subject's).
+    at : mapping of landmark name -> weight
+    offset_mm : (float, float)
+    note : str
+        Free text (what the point follows, why it is where it is).
+    """
+
+    name: str
+    side: str
+    at: Mapping[str, float]
+    offset_mm: tuple[float, float] = (0.0, 0.0)
+    note: str = ""
+
+    def __post_init__(self):
+        if self.side not in SIDES:
+            raise ValueError(f"control point {self.name!r}: side must be one of {SIDES}, got {self.side!r}")
+        at, offset = validate_anchor(f"control point {self.name!r}", self.at, self.offset_mm)
+        object.__setattr__(self, "at", at)
+        object.__setattr__(self, "offset_mm", offset)
+
+    def anchor(self, landmarks) -> np.ndarray:
+        """The weighted mean (3,) of the named landmarks of a face."""
+        return anchor_point(landmarks, self.at, f"control point {self.name!r}")
+
+    def position_xy(self, landmarks) -> np.ndarray:
+        """(x, y) of the point on a face with the given (22, 3) landmarks."""
+        return self.anchor(landmarks)[:2] + self.offset_mm
 
 
 def anchor_point(landmarks, at, owner: str = "anchor") -> np.ndarray:
