@@ -315,7 +315,7 @@ def test_ict_face_reconstructs_expressions(shared):
 def test_cli_fits_and_clones_npz_inputs_with_pictures(procedural_face, tmp_path):
     import argparse
 
-    from tpscore.elastic_cli import add_elastic_parser
+    from tpscore.cli.elastic import add_elastic_parser
 
     vertices, faces, landmarks = procedural_face
     source_face = ElasticFace(vertices, faces, landmarks=landmarks)

@@ -9,19 +9,29 @@ from __future__ import annotations
 from . import datasets, render
 from .face import landmarks
 from ._core import num_threads, set_num_threads
-from .action_units import ActionUnit, ActionUnitLibrary, ControlPoint, default_library
 from .face.average_face import AverageFace, build_average_face, load_average_face
-from .expression_transfer import (
+from .expression import (
+    ActionUnit,
+    ActionUnitLibrary,
     Animation,
+    ControlPoint,
+    DenseMotion,
     ExpressionModel,
+    MirroredMotion,
+    MotionOptions,
+    RigidAlignment,
+    TextureOptions,
     TransferOptions,
     TransferResult,
+    align_rigid,
     animate,
+    default_library,
+    fit_mirror_symmetry,
     model_expression,
+    register_surfaces,
+    track_texture,
     transfer,
 )
-from .alignment import RigidAlignment, align_rigid, fit_mirror_symmetry
-from .motion import DenseMotion, MirroredMotion, MotionOptions, register_surfaces
 from .adaptation import AdaptationWarning, AdaptLevel, AdaptResult, Correspondences, adapt
 from .calibration import AxesCalibration, axes_calibration, calibrate
 from .correspondence import FeatureMesh, curvature_features
@@ -106,6 +116,8 @@ __all__ = [
     "DenseMotion",
     "MirroredMotion",
     "MotionOptions",
+    "TextureOptions",
+    "track_texture",
     "ExpressionModel",
     "model_expression",
     "Animation",

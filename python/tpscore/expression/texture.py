@@ -37,10 +37,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._validation import as_positive
-from .face.image import bilinear, grey_levels
-from .face.grid import FaceGrid
-from .raster import interpolate_pixels, rasterise
+from .._validation import as_positive
+from ..face.image import bilinear, grey_levels
+from ..face.grid import FaceGrid
+from ..raster import interpolate_pixels, rasterise
 
 __all__ = ["TextureOptions", "TextureMatches", "TextureWarning", "track_texture", "render_texture",
            "TexturePlane"]

@@ -69,9 +69,9 @@ def _subject(model: dict, subject: int) -> np.ndarray:
 
 def elastic_command(args) -> int:
     """Run ``tpscore elastic`` from parsed arguments; returns the exit status."""
-    from . import render
-    from .elastic import ElasticFace
-    from .mesh import height_field_remesh
+    from .. import render
+    from ..elastic import ElasticFace
+    from ..mesh import height_field_remesh
 
     start = time.perf_counter()
 
