@@ -1,5 +1,7 @@
 import threading
 
+import pytest
+
 import tpscore
 import tpscore._core as core
 
@@ -21,3 +23,15 @@ def test_stub_file_ships_with_the_extension():
     stub = Path(core.__file__).with_name("_core.pyi")
     assert stub.is_file()
     assert "def set_num_threads" in stub.read_text()
+
+
+def test_version_comes_from_the_installed_metadata():
+    from importlib import metadata
+
+    import tpscore
+
+    try:
+        installed = metadata.version("tpscore")
+    except metadata.PackageNotFoundError:
+        pytest.skip("tpscore is not installed (run from a source tree)")
+    assert tpscore.__version__ == installed

@@ -6,6 +6,8 @@ kernels in ``tpscore._core`` are private. Procedural faces are in
 """
 from __future__ import annotations
 
+from importlib import metadata as _metadata
+
 from . import datasets, render
 from .face import landmarks
 from ._core import num_threads, set_num_threads
@@ -65,7 +67,10 @@ from .rbf import RBF, RBF_KERNELS, TPS
 from .sparse import PatternCholesky, SparseCholesky
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
 
-__version__ = "0.1.0"
+try:
+    __version__ = _metadata.version("tpscore")
+except _metadata.PackageNotFoundError:  # imported from a source tree that was never installed
+    __version__ = "0+unknown"
 
 __all__ = [
     # kernels
