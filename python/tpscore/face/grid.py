@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
+from scipy.spatial import Delaunay, QhullError
 
 from .._validation import as_positive
 from .image import as_colour_image as _as_colour_image
@@ -720,7 +721,6 @@ def _resample_lattice(grid, valid, source_uv, lattice, xs, ys, max_gap_mm):
 
 def _resample_delaunay(cloud, cloud_uv, xs, ys, max_gap_mm):
     """z, mask and u,v on the target axes from scattered points (see resample_scan)."""
-    from scipy.spatial import Delaunay, QhullError
 
     xy = np.ascontiguousarray(cloud[:, :2])
     try:

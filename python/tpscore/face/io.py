@@ -27,7 +27,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
+from .._validation import as_faces, as_points
 from .landmarks import LANDMARK_NAMES, N_LANDMARKS, empty_landmarks, landmark_index
 
 __all__ = [
@@ -140,7 +142,6 @@ def read_image(path) -> np.ndarray:
         Naming the file: missing, a folder, not an image, truncated or corrupt, or
         larger than :data:`MAX_IMAGE_PIXELS`.
     """
-    from PIL import Image, UnidentifiedImageError
 
     where = repr(str(path))
     if not os.path.exists(path):
@@ -638,6 +639,7 @@ def read_mesh(path):
     ValueError
         If the file is missing, unreadable, or holds no vertices.
     """
+    # trimesh takes a third of a second to import; only mesh files need it
     import trimesh
 
     where = repr(str(path))
@@ -739,7 +741,6 @@ def write_mesh(path, vertices, faces, *, uv=None, vertex_colors=None) -> None:
     vertex_colors : (n, 3) or (n, 4), optional
         uint8 in [0, 255] or float in [0, 1]: OBJ ``v x y z r g b``, PLY red/green/blue/alpha.
     """
-    from .._validation import as_faces, as_points
 
     vertices = as_points(vertices, "vertices")
     faces = as_faces(np.asarray(faces).reshape(-1, 3) if np.size(faces) == 0 else faces, len(vertices))
@@ -808,8 +809,7 @@ def _ply_bytes(vertices, faces, uv, colors) -> bytes:
 
 def write_npz(path, **arrays) -> None:
     """Write arrays to a compressed ``.npz`` (atomically, like every writer here)."""
-    import io as _bytes_io
 
-    buffer = _bytes_io.BytesIO()
+    buffer = _stdio.BytesIO()
     np.savez_compressed(buffer, **arrays)
     _atomic_write(path, buffer.getvalue())

@@ -10,6 +10,8 @@ from typing import Mapping
 
 import numpy as np
 
+from ..rbf import TPS
+
 __all__ = [
     "LANDMARK_NAMES",
     "N_LANDMARKS",
@@ -189,7 +191,6 @@ def landmark_map(from_landmarks, to_landmarks, *, smoothing: float = 0.0,
     Raises a ValueError that says how many landmarks remain when fewer than five are
     present in both faces (a 3D TPS needs five non-coplanar pairs).
     """
-    from ..rbf import TPS  # the kernels import this module; import them late
 
     a = np.asarray(from_landmarks, dtype=np.float64)
     b = np.asarray(to_landmarks, dtype=np.float64)
