@@ -179,7 +179,9 @@ def texture_landmarks(points, mask, lm_from, lm_to, texture) -> np.ndarray:
     valid = np.flatnonzero(mask.reshape(-1))
     flat = points.reshape(-1, 3)[valid]
     # a neutral landmark sits on a grid vertex (it was snapped there): find that vertex
-    nearest = valid[np.argmin(((flat[None, :, :] - lm_from[present, None, :]) ** 2).sum(axis=-1), axis=1)]
+    # (|a - b|^2 up to the landmark's own |a|^2, as one matrix product)
+    squared = (flat * flat).sum(axis=1)[None, :] - 2.0 * lm_from[present] @ flat.T
+    nearest = valid[np.argmin(squared, axis=1)]
     matched = texture.confidence.reshape(-1)[nearest] > 0
     out[present[matched]] = texture.targets.reshape(-1, 3)[nearest[matched]]
     return out
