@@ -25,8 +25,6 @@ __all__ = [
     "ElasticOptions",
     "energy_matrix",
     "default_fixed_region",
-    "as_vertex_mask",
-    "unanchored_parts",
     "ElasticBasis",
 ]
 
@@ -144,6 +142,17 @@ class ElasticBasis:
         Handle vertices, distinct and outside ``fixed``.
     fixed : ndarray of bool, shape (n,)
         Vertices held still.
+
+    Attributes
+    ----------
+    matrix : ndarray, shape (n, k)
+        The basis: column j is the displacement of every vertex when handle j moves by
+        one unit alone; rows of handles are the identity, rows of fixed vertices 0.
+    free : ndarray of int64
+        The vertices neither handles nor fixed, whose block is factorised.
+    timings : dict
+        Seconds spent factorising (``factorisation_s``) and solving for the basis
+        (``basis_s``).
 
     Notes
     -----

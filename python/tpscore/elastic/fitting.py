@@ -10,7 +10,7 @@ import scipy.linalg
 
 from .._validation import check_finite
 
-__all__ = ["ExpressionSet", "as_expressive_meshes", "fit_expressions", "blend_weights"]
+__all__ = ["ExpressionSet", "fit_expressions"]
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ A **sphincter muscle** (around the mouth or an eye) is an ellipse of radial line
 muscles: the centre is fitted to its control points (their mean, moved ``depth_mm``
 behind the surface), the ellipse's semi-axes are the points' extents along the face
 frame's x and y, and ``spokes`` linear muscles run from the centre to points on the
-ellipse, each with an angular zone of one spoke spacing.
+ellipse, each with an angular zone that reaches its neighbours.
 
 Muscles are registered to the control points once (:class:`MuscleModel`): every
 muscle's displacement field per unit contraction is precomputed, so the control-point
