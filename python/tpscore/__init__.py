@@ -38,7 +38,7 @@ from .adaptation import AdaptationWarning, AdaptLevel, AdaptResult, Corresponden
 from .calibration import AxesCalibration, axes_calibration, calibrate
 from .correspondence import FeatureMesh, curvature_features
 from .csrbf import CSRBF, ConvergenceError, wendland
-from .elastic import ElasticFace, ExpressionSet
+from .elastic import ElasticFace, ElasticOptions, ExpressionSet, LinearMuscle, MuscleModel, SphincterMuscle
 from .face.io import (
     BntScan,
     read_bnt,
@@ -60,7 +60,6 @@ from .mesh import (
     vertex_normals,
     voronoi_areas,
 )
-from .muscles import LinearMuscle, MuscleModel, SphincterMuscle
 from .face.normalise import FrameTransform, NormalisedFace, normalise_face, similarity_transform, thesis_affine_transform
 from .face.grid import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, resample_scan
 from .rbf import RBF, RBF_KERNELS, TPS
@@ -161,6 +160,7 @@ __all__ = [
     "SparseCholesky",
     # elastic expression model
     "ElasticFace",
+    "ElasticOptions",
     "ExpressionSet",
     "LinearMuscle",
     "MuscleModel",

@@ -30,7 +30,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from .._validation import as_faces, as_points
-from .landmarks import LANDMARK_NAMES, N_LANDMARKS, empty_landmarks, landmark_index
+from .landmarks import LANDMARK_NAMES, N_LANDMARKS, as_landmarks, empty_landmarks, landmark_index
 
 __all__ = [
     "BntScan",
@@ -103,25 +103,6 @@ def _read_text(path) -> list[str]:
     except UnicodeDecodeError as exc:
         raise ValueError(f"{str(path)!r}: not a UTF-8 text file (byte {exc.start})") from None
     return text.splitlines()
-
-
-def _as_landmark_array(landmarks, name: str = "landmarks") -> np.ndarray:
-    """A (22, 3) float64 copy; rows are either all finite or all NaN (missing)."""
-    try:
-        array = np.array(landmarks, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be a numeric (22, 3) array: {exc}") from None
-    if array.shape != (N_LANDMARKS, 3):
-        raise ValueError(f"{name} must have shape ({N_LANDMARKS}, 3), got {array.shape}")
-    finite = np.isfinite(array)
-    partial = finite.any(axis=1) & ~finite.all(axis=1)
-    if np.isinf(array).any() or partial.any():
-        bad = np.flatnonzero(partial | np.isinf(array).any(axis=1))[0]
-        raise ValueError(
-            f"{name} row {bad} ({LANDMARK_NAMES[bad]}) has non-finite coordinates "
-            f"{array[bad].tolist()}; a missing landmark is a row of three NaN"
-        )
-    return array
 
 
 def _format_float(value: float) -> str:
@@ -454,7 +435,7 @@ def write_lm3(path, landmarks, *, header: str = "3D landmark points") -> None:
     header : str
         The first line of the file.
     """
-    array = _as_landmark_array(landmarks)
+    array = as_landmarks(landmarks)
     if "\n" in header or "\r" in header:
         raise ValueError("header must be a single line")
     present = np.flatnonzero(np.isfinite(array).all(axis=1))
@@ -606,7 +587,7 @@ def write_landmarks(path, landmarks) -> None:
     """Write 22 landmarks as ``.lm3``, ``.csv`` (``name,x,y,z`` with a header) or ``.json``
     (``{name: [x, y, z]}``), chosen by the suffix. Missing (NaN) landmarks are omitted."""
     suffix = Path(path).suffix.lower()
-    array = _as_landmark_array(landmarks)
+    array = as_landmarks(landmarks)
     present = np.flatnonzero(np.isfinite(array).all(axis=1))
     if suffix == ".lm3":
         write_lm3(path, array)
