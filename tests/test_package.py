@@ -1,4 +1,11 @@
+import os
+import subprocess
+import sys
+import textwrap
 import threading
+
+import numpy as np
+import pytest
 
 import tpscore
 import tpscore._core as core
@@ -21,3 +28,80 @@ def test_stub_file_ships_with_the_extension():
     stub = Path(core.__file__).with_name("_core.pyi")
     assert stub.is_file()
     assert "def set_num_threads" in stub.read_text()
+
+
+# --- the thread count: bad values are refused, large ones capped, failures survived ----
+
+@pytest.mark.parametrize("bad", ["a", None, 2.5, True, [2]])
+def test_set_num_threads_refuses_non_integers(bad):
+    before = tpscore.num_threads()
+    with pytest.raises(ValueError, match=r"n \(the thread count\) must be an integer"):
+        tpscore.set_num_threads(bad)
+    assert tpscore.num_threads() == before
+
+
+def _kernel_results():
+    rng = np.random.default_rng(0)
+    source = rng.uniform(-50.0, 50.0, size=(60, 3))
+    warp = tpscore.TPS(source, source + rng.normal(size=source.shape))
+    queries = rng.uniform(-80.0, 80.0, size=(100_000, 3))
+    tree = tpscore.KDTree(queries[:20_000])
+    distances, indices = tree.query(queries, k=4)
+    return warp(queries), distances, indices
+
+
+def test_a_huge_thread_count_is_capped_and_gives_the_serial_results():
+    try:
+        tpscore.set_num_threads(1)
+        serial = _kernel_results()
+        tpscore.set_num_threads(600)
+        assert tpscore.num_threads() == tpscore.max_threads() == 4 * (os.cpu_count() or 1)
+        capped = _kernel_results()
+        tpscore.set_num_threads(2**80)  # a Python int no C int holds
+        assert tpscore.num_threads() == tpscore.max_threads()
+    finally:
+        tpscore.set_num_threads(0)
+    for a, b in zip(serial, capped):
+        assert np.array_equal(a, b)
+
+
+def _run_python(code, **env):
+    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True,
+                          text=True, timeout=120, env={**os.environ, **env})
+
+
+def test_a_huge_thread_count_from_the_environment_is_capped():
+    result = _run_python("""
+        import tpscore
+        print(tpscore.num_threads(), tpscore.max_threads())
+        """, TPSCORE_NUM_THREADS="600")
+    assert result.returncode == 0, result.stderr
+    count, cap = map(int, result.stdout.split())
+    assert count == cap
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses /proc and RLIMIT_AS")
+def test_threads_that_cannot_start_do_not_abort_the_interpreter():
+    # With the address space capped a few MiB above what the process already uses,
+    # at most one 8 MiB thread stack fits: the other starts fail, and their rows must
+    # run on the calling thread instead of aborting (std::terminate).
+    result = _run_python("""
+        import resource
+        import numpy as np
+        import tpscore
+        rng = np.random.default_rng(0)
+        source = rng.uniform(-50.0, 50.0, size=(60, 3))
+        warp = tpscore.TPS(source, source + rng.normal(size=source.shape))
+        queries = rng.uniform(-80.0, 80.0, size=(200_000, 3))
+        tpscore.set_num_threads(1)
+        serial = warp(queries)
+        tpscore.set_num_threads(600)
+        out = np.empty_like(serial)
+        status = open("/proc/self/status").read().split("VmSize:")[1]
+        used = int(status.split()[0]) * 1024
+        resource.setrlimit(resource.RLIMIT_AS, (used + (16 << 20), resource.RLIM_INFINITY))
+        warp._model.evaluate_into(queries, out)
+        print(np.array_equal(out, serial))
+        """)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["True"]

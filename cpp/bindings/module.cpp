@@ -16,8 +16,11 @@ void bind_lattice_gram(nb::module_& m);
 NB_MODULE(_core, m) {
     m.doc() = "tpscore's compiled kernels (private: use the tpscore package instead)";
     m.def("num_threads", &tpscore::num_threads, "Threads a kernel may use.");
+    m.def("max_threads", &tpscore::max_threads,
+          "The cap on the kernel thread count (4x the hardware threads).");
     m.def("set_num_threads", &tpscore::set_num_threads, nb::arg("n"),
-          "Set the kernel thread count; n <= 0 restores the default.");
+          "Set the kernel thread count; n <= 0 restores the default, larger than "
+          "max_threads() means max_threads().");
     bind_rbf(m);
     bind_csrbf(m);
     bind_spatial(m);

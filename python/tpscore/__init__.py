@@ -7,7 +7,7 @@ kernels in ``tpscore._core`` are private. Procedural faces are in
 from __future__ import annotations
 
 from . import datasets, landmarks, render
-from ._core import num_threads, set_num_threads
+from ._threads import max_threads, num_threads, set_num_threads
 from .action_units import ActionUnit, ActionUnitLibrary, ControlPoint, default_library
 from .average_face import AverageFace, build_average_face, load_average_face
 from .expression_transfer import (
@@ -68,6 +68,7 @@ __all__ = [
     "MeshSurface",
     "RayHits",
     "closest_point_on_mesh",
+    "max_threads",
     "num_threads",
     "set_num_threads",
     # scan and mesh files

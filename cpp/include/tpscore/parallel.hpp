@@ -4,25 +4,36 @@
 #include <algorithm>
 #include <cstddef>
 #include <exception>
+#include <system_error>
 #include <thread>
 #include <vector>
 
 namespace tpscore {
 
+/// The most threads a kernel uses: 4x the hardware concurrency. More would only
+/// share the cores, and every thread costs a stack; a request above it (from
+/// set_num_threads or TPSCORE_NUM_THREADS) is capped here.
+int max_threads();
+
 /// Number of threads a kernel may use: set_num_threads() if called with n > 0,
-/// else the environment variable TPSCORE_NUM_THREADS, else the hardware concurrency.
+/// else the environment variable TPSCORE_NUM_THREADS, else the hardware concurrency;
+/// never more than max_threads().
 int num_threads();
 
-/// Sets the thread count for later kernel calls; n <= 0 restores the default.
+/// Sets the thread count for later kernel calls; n <= 0 restores the default, and
+/// n > max_threads() means max_threads().
 void set_num_threads(int n);
 
 /// Calls body(begin, end) on disjoint chunks that cover [0, n).
 ///
 /// Each chunk holds at least `min_chunk` items, so small problems run serially on
 /// the calling thread (spawning threads costs tens of microseconds). Every index is
-/// visited by exactly one chunk, so a body that writes only its own rows gives the
-/// same result whatever the thread count. The first exception thrown by a worker is
-/// rethrown on the calling thread after all workers have joined.
+/// visited by exactly one chunk, and the chunks depend only on n, min_chunk and the
+/// thread count, so a body that writes only its own rows gives the same result
+/// whatever the thread count. When the system refuses to start a thread (too many
+/// threads, no memory for a stack), the calling thread runs that chunk itself after
+/// its own: slower, never an abort. The first exception thrown by a body is rethrown
+/// on the calling thread after all workers have joined.
 template <class Body>
 void parallel_for(std::size_t n, std::size_t min_chunk, Body&& body) {
     if (n == 0) return;
@@ -47,8 +58,18 @@ void parallel_for(std::size_t n, std::size_t min_chunk, Body&& body) {
             errors[w] = std::current_exception();
         }
     };
-    for (std::size_t w = 1; w < workers; ++w) threads.emplace_back(run, w);
+    // Chunks [1, started] run on their own threads; the rest on the calling thread.
+    std::size_t started = 0;
+    for (std::size_t w = 1; w < workers; ++w) {
+        try {
+            threads.emplace_back(run, w);
+        } catch (const std::system_error&) {
+            break;  // std::thread reports a failed pthread_create as system_error
+        }
+        started = w;
+    }
     run(0);  // the calling thread takes the first chunk
+    for (std::size_t w = started + 1; w < workers; ++w) run(w);
     for (auto& t : threads) t.join();
     for (auto& e : errors)
         if (e) std::rethrow_exception(e);
