@@ -105,3 +105,31 @@ def test_threads_that_cannot_start_do_not_abort_the_interpreter():
         """)
     assert result.returncode == 0, result.stderr
     assert result.stdout.split() == ["True"]
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork()")
+def test_kernels_run_in_a_forked_child_after_the_parent_used_threads():
+    # The kernels keep a pool of threads between calls; a child of fork() has none of
+    # them and must start its own rather than wait for threads that do not exist.
+    warp, queries = _threaded_warp()
+    expected = warp(queries)  # the parent's pool is running now
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: evaluate, report, and leave without running pytest's exit
+        try:
+            ok = np.array_equal(warp(queries), expected)
+            os.write(write, b"1" if ok else b"0")
+        finally:
+            os._exit(0)
+    os.close(write)
+    _, status = os.waitpid(pid, 0)
+    answer = os.read(read, 1)
+    os.close(read)
+    assert status == 0 and answer == b"1"
+
+
+def _threaded_warp():
+    rng = np.random.default_rng(3)
+    source = rng.uniform(-50.0, 50.0, size=(80, 3))
+    return tpscore.TPS(source, source + rng.normal(size=source.shape)), rng.uniform(-80.0, 80.0, (100_000, 3))
+

@@ -3,10 +3,7 @@
 
 #include <algorithm>
 #include <cstddef>
-#include <exception>
-#include <system_error>
-#include <thread>
-#include <vector>
+#include <type_traits>
 
 namespace tpscore {
 
@@ -24,16 +21,23 @@ int num_threads();
 /// n > max_threads() means max_threads().
 void set_num_threads(int n);
 
+namespace detail {
+/// Runs task(context, i) for every i in [0, count) exactly once, on the calling
+/// thread and on up to `helpers` threads of a process-wide pool; returns when all
+/// have run, rethrowing the first exception a task threw. See parallel.cpp.
+void run_tasks(std::size_t count, std::size_t helpers, void (*task)(void*, std::size_t), void* context);
+}  // namespace detail
+
 /// Calls body(begin, end) on disjoint chunks that cover [0, n).
 ///
 /// Each chunk holds at least `min_chunk` items, so small problems run serially on
-/// the calling thread (spawning threads costs tens of microseconds). Every index is
-/// visited by exactly one chunk, and the chunks depend only on n, min_chunk and the
-/// thread count, so a body that writes only its own rows gives the same result
-/// whatever the thread count. When the system refuses to start a thread (too many
-/// threads, no memory for a stack), the calling thread runs that chunk itself after
-/// its own: slower, never an abort. The first exception thrown by a body is rethrown
-/// on the calling thread after all workers have joined.
+/// the calling thread. Every index is visited by exactly one chunk, and the chunks
+/// depend only on n, min_chunk and the thread count (never on which thread runs
+/// them), so a body that writes only its own rows gives the same result whatever the
+/// thread count. The calling thread works too, and takes any chunk no other thread
+/// has started: a pool thread that cannot start, or that another process keeps off
+/// a core, slows nothing down beyond its share. The first exception thrown by a body
+/// is rethrown on the calling thread after every chunk has finished.
 template <class Body>
 void parallel_for(std::size_t n, std::size_t min_chunk, Body&& body) {
     if (n == 0) return;
@@ -44,35 +48,19 @@ void parallel_for(std::size_t n, std::size_t min_chunk, Body&& body) {
         body(std::size_t{0}, n);
         return;
     }
-    const std::size_t chunk = (n + workers - 1) / workers;
-    std::vector<std::exception_ptr> errors(workers);
-    std::vector<std::thread> threads;
-    threads.reserve(workers - 1);
-    auto run = [&](std::size_t w) {
-        const std::size_t begin = w * chunk;
-        const std::size_t end = std::min(n, begin + chunk);
-        if (begin >= end) return;
-        try {
-            body(begin, end);
-        } catch (...) {
-            errors[w] = std::current_exception();
-        }
-    };
-    // Chunks [1, started] run on their own threads; the rest on the calling thread.
-    std::size_t started = 0;
-    for (std::size_t w = 1; w < workers; ++w) {
-        try {
-            threads.emplace_back(run, w);
-        } catch (const std::system_error&) {
-            break;  // std::thread reports a failed pthread_create as system_error
-        }
-        started = w;
-    }
-    run(0);  // the calling thread takes the first chunk
-    for (std::size_t w = started + 1; w < workers; ++w) run(w);
-    for (auto& t : threads) t.join();
-    for (auto& e : errors)
-        if (e) std::rethrow_exception(e);
+    using Callable = std::remove_reference_t<Body>;
+    struct Chunks {
+        Callable* body;
+        std::size_t n, chunk;
+    } chunks{&body, n, (n + workers - 1) / workers};
+    detail::run_tasks(workers, workers - 1,
+                      [](void* context, std::size_t w) {
+                          const Chunks& c = *static_cast<const Chunks*>(context);
+                          const std::size_t begin = w * c.chunk;
+                          const std::size_t end = std::min(c.n, begin + c.chunk);
+                          if (begin < end) (*c.body)(begin, end);
+                      },
+                      &chunks);
 }
 
 }  // namespace tpscore
