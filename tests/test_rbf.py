@@ -285,6 +285,110 @@ def test_values_of_any_width():
         one_dimensional.displacement(centres)
 
 
+# --- the blocked, threaded fit -----------------------------------------------------------
+
+def face_like_cloud(rng, n):
+    """n points on a face-sized curved surface with depth jitter, in mm (as the pipeline's)."""
+    xy = rng.uniform(-70.0, 70.0, size=(n, 2))
+    z = 40.0 * np.exp(-(xy ** 2).sum(axis=1) / 5000.0) + rng.normal(scale=1.0, size=n)
+    return np.column_stack([xy, z])
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("n, smoothing", [(150, 0.0), (420, 0.0), (420, 1e-3)])
+def test_blocked_fit_matches_reference(kernel, n, smoothing):
+    # n > 128 takes the factorisation through several panels (and the threaded
+    # trailing updates): the compiled fit must still be the reference's interpolant.
+    # Unit-sized coordinates keep the reference's own system (solved as written, not
+    # normalised) well enough conditioned to be a reference.
+    rng = np.random.default_rng(n + 7)
+    centres = face_like_cloud(rng, n) / 70.0
+    values = smooth_values(centres, rng)
+    # About one over the spacing of these clouds: wider shapes make the gaussian and
+    # multiquadric systems singular to working precision at n = 420.
+    epsilon = 10.0 if kernel in EPSILON else None
+    fitted = RBF(centres, values, kernel, smoothing=smoothing, epsilon=epsilon)
+    weights, affine = reference.fit(centres, values, kernel, smoothing, epsilon)
+    queries = face_like_cloud(rng, 300) / 60.0
+    expected = reference.evaluate(queries, centres, weights, affine, kernel, epsilon)
+    # Forward error of two backward-stable solves: cond * eps relative to |values|,
+    # with the larger of the two systems' condition numbers; factor 100 as in
+    # test_core_matches_reference.
+    condition = max(fitted.condition_number,
+                    np.linalg.cond(_reference_system_with(centres, kernel, smoothing, epsilon)))
+    magnitude = np.abs(values).max()
+    tolerance = 1e2 * EPS * condition * magnitude
+    assert tolerance < 1e-3 * magnitude  # the draw is conditioned well enough to say something
+    np.testing.assert_allclose(fitted(queries), expected, rtol=0, atol=tolerance)
+    if smoothing == 0.0:
+        # And it interpolates: the residual at the centres is of the same order.
+        np.testing.assert_allclose(fitted(centres), values, rtol=0, atol=tolerance)
+
+
+def _reference_system_with(centres, kernel, smoothing, epsilon):
+    n = len(centres)
+    matrix = np.zeros((n + 4, n + 4))
+    matrix[:n, :n] = reference.kernel_matrix(kernel, centres, centres, epsilon)
+    matrix[:n, :n] += reference.SMOOTHING_SIGN[kernel] * smoothing * np.eye(n)
+    matrix[:n, n:] = np.column_stack([np.ones(n), centres])
+    matrix[n:, :n] = matrix[:n, n:].T
+    return matrix
+
+
+def _normalised_equilibrated_system(fitted, centres, kernel, smoothing, epsilon):
+    """The saddle-point matrix the fit factorises: centres centred on their bounding
+    box and scaled into the unit ball, polynomial rows and columns scaled to the
+    kernel block."""
+    shift = 0.5 * (centres.min(axis=0) + centres.max(axis=0))
+    scale = np.linalg.norm(centres - shift, axis=1).max()
+    unit = (centres - shift) / scale
+    degree = {"tps": 2, "biharmonic": 1, "triharmonic": 3}.get(kernel, 0)
+    n = len(centres)
+    kernel_block = reference.kernel_matrix(kernel, unit, unit, None if epsilon is None else epsilon * scale)
+    kernel_block += reference.SMOOTHING_SIGN[kernel] * smoothing / scale ** degree * np.eye(n)
+    s = np.abs(kernel_block).max()
+    matrix = np.zeros((n + 4, n + 4))
+    matrix[:n, :n] = kernel_block
+    matrix[:n, n:] = s * np.column_stack([np.ones(n), unit])
+    matrix[n:, :n] = matrix[:n, n:].T
+    return matrix
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("n", [40, 300])
+def test_condition_number_estimates_the_solved_system(kernel, n):
+    rng = np.random.default_rng(n)
+    centres = face_like_cloud(rng, n)
+    epsilon = 0.02 if kernel in EPSILON else None
+    smoothing = 0.5
+    fitted = RBF(centres, centres, kernel, smoothing=smoothing, epsilon=epsilon)
+    exact = np.linalg.cond(_normalised_equilibrated_system(fitted, centres, kernel, smoothing, epsilon), 1)
+    # The estimator finds ||S^-1||_1 from a few solves: never above the true value
+    # (each estimate is |S^-1 x|_1 / |x|_1 for some x; 1e-6 allows for rounding), and
+    # rarely below a third of it (Higham, 1988).
+    assert fitted.condition_number <= exact * (1 + 1e-6)
+    assert fitted.condition_number >= exact / 3
+
+
+def test_fit_does_not_depend_on_thread_count():
+    rng = np.random.default_rng(21)
+    centres = face_like_cloud(rng, 900)
+    values = centres + rng.normal(scale=2.0, size=centres.shape)
+    fits = []
+    try:
+        for threads in (1, 2, 3):
+            tpscore.set_num_threads(threads)
+            fits.append(TPS(centres, values))
+    finally:
+        tpscore.set_num_threads(0)
+    # Every entry of the factor is computed by one thread with the same operations
+    # in the same order whatever the thread count: bitwise equal.
+    for other in fits[1:]:
+        assert np.array_equal(other.weights, fits[0].weights)
+        assert np.array_equal(other.affine, fits[0].affine)
+        assert other.condition_number == fits[0].condition_number
+
+
 def test_result_does_not_depend_on_thread_count():
     rng = np.random.default_rng(10)
     source = face_like_landmarks(rng, 60)
