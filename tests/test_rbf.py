@@ -389,6 +389,24 @@ def test_fit_does_not_depend_on_thread_count():
         assert other.condition_number == fits[0].condition_number
 
 
+@pytest.mark.parametrize("k", [1, 3])
+def test_evaluation_agrees_with_the_evaluation_matrix_at_every_distance(k):
+    # The evaluation loop and the evaluation matrix compute phi with two different
+    # logarithms (a hand-written one where the CPU has AVX-512); queries from 1e-9 mm
+    # to 1e5 mm away from the centres, and on them, take every range of r^2 through it.
+    rng = np.random.default_rng(30 + k)
+    centres = face_like_landmarks(rng, 40)
+    fitted = RBF(centres, centres[:, :k] + rng.normal(size=(40, k)))
+    directions = rng.normal(size=(2000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    distances = 10.0 ** rng.uniform(-9, 5, size=(2000, 1))
+    queries = np.vstack([centres, centres[rng.integers(0, 40, 2000)] + distances * directions])
+    matrix = fitted.evaluation_matrix(queries)
+    # Both sum the same terms; each term carries a rounding of eps |E_ij| |c_j|.
+    scale = np.abs(matrix) @ np.abs(fitted.coefficients)
+    np.testing.assert_array_less(np.abs(fitted(queries) - matrix @ fitted.coefficients), 64 * EPS * scale + 1e-300)
+
+
 def test_result_does_not_depend_on_thread_count():
     rng = np.random.default_rng(10)
     source = face_like_landmarks(rng, 60)
