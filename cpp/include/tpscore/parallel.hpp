@@ -31,10 +31,9 @@ void run_tasks(std::size_t count, std::size_t helpers, void (*task)(void*, std::
 /// Calls body(begin, end) on disjoint chunks that cover [0, n).
 ///
 /// Each chunk holds at least `min_chunk` items, so small problems run serially on
-/// the calling thread. Every index is visited by exactly one chunk, and the chunks
-/// depend only on n, min_chunk and the thread count (never on which thread runs
-/// them), so a body that writes only its own rows gives the same result whatever the
-/// thread count. The calling thread works too, and takes any chunk no other thread
+/// the calling thread. Every index is visited by exactly one chunk, so a body that
+/// writes only its own rows gives the same result whatever the thread count (and
+/// whichever thread runs which chunk). The calling thread works too, and takes any chunk no other thread
 /// has started: a pool thread that cannot start, or that another process keeps off
 /// a core, slows nothing down beyond its share. The first exception thrown by a body
 /// is rethrown on the calling thread after every chunk has finished.
@@ -48,12 +47,15 @@ void parallel_for(std::size_t n, std::size_t min_chunk, Body&& body) {
         body(std::size_t{0}, n);
         return;
     }
+    // Up to four chunks per thread, taken in turn from a shared counter: a thread that
+    // another process keeps off its core then holds up a quarter of its share, not all.
+    const std::size_t tasks = std::min(4 * workers, std::max<std::size_t>(1, n / min_chunk));
     using Callable = std::remove_reference_t<Body>;
     struct Chunks {
         Callable* body;
         std::size_t n, chunk;
-    } chunks{&body, n, (n + workers - 1) / workers};
-    detail::run_tasks(workers, workers - 1,
+    } chunks{&body, n, (n + tasks - 1) / tasks};
+    detail::run_tasks((n + chunks.chunk - 1) / chunks.chunk, workers - 1,
                       [](void* context, std::size_t w) {
                           const Chunks& c = *static_cast<const Chunks*>(context);
                           const std::size_t begin = w * c.chunk;
