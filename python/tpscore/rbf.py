@@ -199,7 +199,7 @@ class RBF:
     the GIL, so several threads may evaluate it at once.
     """
 
-    __slots__ = ("_model", "_kernel", "_centres", "_weights", "_affine", "_n_values")
+    __slots__ = ("_model", "_kernel", "_n_values", "_arrays")
 
     def __init__(self, centres, values, kernel: str = "tps", *, smoothing: float = 0.0,
                  epsilon: float | None = None):
@@ -223,19 +223,30 @@ class RBF:
         if values_array.shape[1] == 0:
             raise ValueError("values must have at least one column, got shape "
                              f"{values_array.shape}")
-        _check_geometry(centres_array, allow_coincident=smoothing_value > 0)
+        self._fit(centres_array, values_array, kernel, smoothing_value, epsilon_value)
+
+    def _fit(self, centres: np.ndarray, values: np.ndarray, kernel: str, smoothing: float,
+             epsilon: float) -> None:
+        """Fit validated, C-contiguous float64 centres (n, 3) and values (n, k)."""
+        _check_geometry(centres, allow_coincident=smoothing > 0)
         try:
-            model = _core.rbf_fit(centres_array, values_array, RBF_KERNELS[kernel],
-                                  epsilon_value, smoothing_value)
+            model = _core.rbf_fit(centres, values, RBF_KERNELS[kernel], epsilon, smoothing)
         except ValueError as exc:
             raise ValueError(f"cannot fit the {kernel} RBF: {exc}") from None
         setter = object.__setattr__
         setter(self, "_model", model)
         setter(self, "_kernel", kernel)
-        setter(self, "_n_values", values_array.shape[1])
-        setter(self, "_centres", _read_only(model.centres))
-        setter(self, "_weights", _read_only(model.weights))
-        setter(self, "_affine", _read_only(model.affine))
+        setter(self, "_n_values", values.shape[1])
+        # centres, weights and affine are copied out of the model on first use: a fit
+        # that is only evaluated (the usual TPS warp) never needs them, and the three
+        # copies were a sixth of a 100-centre fit.
+        setter(self, "_arrays", {})
+
+    def _array(self, name: str) -> np.ndarray:
+        array = self._arrays.get(name)
+        if array is None:
+            array = self._arrays.setdefault(name, _read_only(getattr(self._model, name)))
+        return array
 
     def __setattr__(self, name, value):
         raise AttributeError(f"{type(self).__name__} is immutable once fitted")
@@ -309,7 +320,7 @@ class RBF:
         # The size is checked before any conversion, which could itself copy a
         # large (for example broadcast) input.
         shape = np.shape(points)
-        columns = len(self._centres) + 4
+        columns = self._model.size + 4
         if len(shape) == 2 and shape[0] * columns > MAX_DENSE_ELEMENTS:
             raise ValueError(
                 f"points: the evaluation matrix would be {shape[0]} x {columns} "
@@ -338,23 +349,23 @@ class RBF:
     @property
     def centres(self) -> np.ndarray:
         """(n, 3) centres in mm (read-only)."""
-        return self._centres
+        return self._array("centres")
 
     @property
     def weights(self) -> np.ndarray:
         """(n, k) radial weights W in original coordinates (read-only)."""
-        return self._weights
+        return self._array("weights")
 
     @property
     def affine(self) -> np.ndarray:
         """(4, k) affine part A (rows: constant, x, y, z) in original coordinates (read-only)."""
-        return self._affine
+        return self._array("affine")
 
     @property
     def coefficients(self) -> np.ndarray:
         """(n + 4, k) ``[weights; affine]``, matching :meth:`evaluation_matrix` (read-only)."""
         # Stacked on request rather than at every fit: few callers need it.
-        return _read_only(np.concatenate([self._weights, self._affine], axis=0))
+        return _read_only(np.concatenate([self.weights, self.affine], axis=0))
 
     @property
     def bending_energy(self) -> float:
@@ -383,7 +394,7 @@ class RBF:
 
     def __repr__(self) -> str:
         extra = f", epsilon={self._model.epsilon:g}" if self.epsilon is not None else ""
-        return (f"{type(self).__name__}(kernel={self._kernel!r}, centres={len(self._centres)}, "
+        return (f"{type(self).__name__}(kernel={self._kernel!r}, centres={self._model.size}, "
                 f"values={self._n_values}, smoothing={self.smoothing:g}{extra}, "
                 f"condition_number={self.condition_number:.3g})")
 
@@ -414,8 +425,9 @@ class TPS(RBF):
             raise ValueError(
                 f"target must have one row per source point: source has "
                 f"{len(source_array)}, target has {len(target_array)}")
-        super().__init__(source_array, target_array, "tps", smoothing=smoothing)
+        self._fit(source_array, target_array, "tps",
+                  as_positive(smoothing, "smoothing", allow_zero=True), 0.0)
 
     def __repr__(self) -> str:
-        return (f"TPS(centres={len(self._centres)}, smoothing={self.smoothing:g}, "
+        return (f"TPS(centres={self._model.size}, smoothing={self.smoothing:g}, "
                 f"condition_number={self.condition_number:.3g})")
