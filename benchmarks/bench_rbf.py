@@ -42,16 +42,16 @@ CHECK_SAMPLES = 400
 # 1e-6 mm is far above cond * eps * |values| and far below any real error.
 TOLERANCE_MM = 1e-6
 
-# Flops per (query, centre) pair of tpscore's tps evaluation, counted in its loop
-# (rbf.cpp, accumulate_tps_avx512), an FMA as two:
+# Flops per (query, centre) pair of tpscore's tps evaluation on a CPU with AVX-512,
+# counted in its loop (rbf.cpp, accumulate_tps_avx512), an FMA as two:
 #   the offset to the centre, 3; its squared length, 1 multiply + 2 FMAs, 5; the
-#   guard that makes U(0) = 0, 1; the logarithm, 29 (the exponent's correction 1,
-#   the table index 2, the reduced argument 2, a degree-10 polynomial 9 FMAs + 1
-#   multiply + 1 FMA, 21, the sum k log 2 - log c + log1p, 3); r^2 log r^2, 1; and
-#   the three weighted sums (a TPS maps 3 coordinates), 3 FMAs, 6. Total 45.
-# Gathering the table entries and splitting off mantissa and exponent take further
-# instructions that are not counted as flops.
-TPS_FLOPS_PER_PAIR = 45
+#   guard that makes U(0) = 0, 1; the logarithm, 26 (the table index, 1 FMA, 2; the
+#   reduced argument, 1 FMA, 2; ten Taylor terms, 9 FMAs + 1 multiply, 19; the sum
+#   k log 2 - log c + log1p, 1 FMA + 1 add, 3); r^2 log r^2, 1; and the three
+#   weighted sums (a TPS maps 3 coordinates), 3 FMAs, 6. Total 42.
+# Splitting off mantissa and exponent, converting the index and gathering the table
+# entries take further instructions that are not counted as flops.
+TPS_FLOPS_PER_PAIR = 42
 # 2 * 1500^3 = 6.75 Gflop, ~50 ms a round: many short rounds give the fastest round a
 # fair chance of a quiet moment on a shared machine.
 PEAK_SIDE = 1500

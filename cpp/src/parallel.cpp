@@ -1,6 +1,7 @@
 #include "tpscore/parallel.hpp"
 
 #include <atomic>
+#include <chrono>
 #include <condition_variable>
 #include <cstdlib>
 #include <deque>
@@ -94,6 +95,7 @@ public:
         job->helpers_wanted = std::min(helpers, threads_);
         if (job->helpers_wanted == 0) return;
         jobs_.push_back(job);
+        submitted_.fetch_add(1, std::memory_order_release);
         for (std::size_t i = 0; i < job->helpers_wanted; ++i) wake_.notify_one();
     }
 
@@ -112,6 +114,19 @@ private:
     void serve() {
         std::unique_lock<std::mutex> lock(mutex_);
         for (;;) {
+            if (jobs_.empty()) {
+                // Kernels often come in runs (a pipeline's steps, a benchmark's rounds):
+                // watch for the next job for a moment before going to sleep, since a
+                // sleeping thread takes tens of microseconds to wake (a 22,500 x 60
+                // TPS evaluation lasts 0.6 ms on two threads).
+                const std::size_t seen = submitted_.load(std::memory_order_acquire);
+                lock.unlock();
+                const auto until = std::chrono::steady_clock::now() + kSpin;
+                while (submitted_.load(std::memory_order_acquire) == seen &&
+                       std::chrono::steady_clock::now() < until)
+                    pause();
+                lock.lock();
+            }
             wake_.wait(lock, [this] { return !jobs_.empty(); });
             std::shared_ptr<Job> job = jobs_.front();
             if (--job->helpers_wanted == 0) jobs_.pop_front();
@@ -121,10 +136,21 @@ private:
         }
     }
 
+    static void pause() {
+#if defined(__x86_64__) || defined(__i386__)
+        __builtin_ia32_pause();
+#else
+        std::this_thread::yield();
+#endif
+    }
+
+    static constexpr std::chrono::microseconds kSpin{100};
+
     std::mutex mutex_;
     std::condition_variable wake_;
     std::deque<std::shared_ptr<Job>> jobs_;
     std::size_t threads_ = 0;
+    std::atomic<std::size_t> submitted_{0};  // jobs ever queued: a cheap "anything new?"
 };
 
 // The pool lives as long as the process: its threads sleep between jobs and are never

@@ -158,20 +158,20 @@ void accumulate_block(RbfKernel kernel, double e2, const double* qx, const doubl
 // At 22,500 x 60 the tps evaluation is nearly all logarithms: glibc's vector log
 // (libmvec) costs 0.89 ns per value on one AVX-512 core, the rest of the loop about
 // 0.6 ns per pair. This log, for the arguments the kernel gives it (x >= DBL_MIN,
-// finite or +inf), reduces x = m 2^k with m in [0.75, 1.5) by the instructions that
-// split a double into mantissa and exponent, looks up c ~ 1/m in a 16-entry table
-// held in two registers, and sums k log 2 - log c + log1p(mc - 1) with |mc - 1| <
-// 0.032, where ten Taylor terms leave an error below 1e-17. Its error is at most one
-// unit in the last place of max(1, |log x|) (checked against std::log over 2^20
-// values from 1e-17 to 1e17): absolute, not relative, accuracy near x = 1, which is
-// what a sum of weighted kernel values needs.
+// finite or +inf), splits x = m 2^k with m in [1, 2) by the instructions made for it
+// (getmant, getexp), looks up c ~ 1/m in a 16-entry table held in two registers, and
+// sums k log 2 - log c + log1p(mc - 1) with |mc - 1| < 0.031, where ten Taylor terms
+// leave an error below 1e-17. Its error is at most one unit in the last place of
+// max(1, |log x|) (checked against std::log over 2^20 values from 1e-17 to 1e17):
+// absolute, not relative, accuracy just below x = 1 (where -log 2 + log m cancel),
+// which is what a sum of weighted kernel values needs; log 1 is exactly 0.
 
 struct LogTable {
-    alignas(64) double reciprocal[16];  // c_j: 1 / (centre of interval j), rounded
+    alignas(64) double reciprocal[16];  // c_j: 1 / (centre of [1 + j/16, 1 + (j+1)/16)), rounded
     alignas(64) double minus_log[16];   // -log(c_j) for the rounded c_j
     LogTable() {
         for (int j = 0; j < 16; ++j) {
-            reciprocal[j] = 1.0 / (0.75 + (j + 0.5) * (0.75 / 16.0));
+            reciprocal[j] = 1.0 / (1.0 + (j + 0.5) / 16.0);
             minus_log[j] = -std::log(reciprocal[j]);
         }
     }
@@ -190,12 +190,11 @@ __attribute__((target("arch=x86-64-v4"))) TPSCORE_ALWAYS_INLINE LogConstants log
 __attribute__((target("arch=x86-64-v4"))) TPSCORE_ALWAYS_INLINE __m512d log_avx512(__m512d x,
                                                                                    const LogConstants& t) {
     const __m512d one = _mm512_set1_pd(1.0);
-    const __m512d m = _mm512_getmant_pd(x, _MM_MANT_NORM_p75_1p5, _MM_MANT_SIGN_src);
-    // getexp gives floor(log2 x); a mantissa below 1 came from [1.5, 2) one power up.
-    __m512d k = _mm512_getexp_pd(x);
-    k = _mm512_mask_add_pd(k, _mm512_cmp_pd_mask(m, one, _CMP_LT_OQ), k, one);
-    const __m512i j =
-        _mm512_cvttpd_epi64(_mm512_mul_pd(_mm512_sub_pd(m, _mm512_set1_pd(0.75)), _mm512_set1_pd(64.0 / 3.0)));
+    const __m512d m = _mm512_getmant_pd(x, _MM_MANT_NORM_1_2, _MM_MANT_SIGN_src);
+    const __m512d k = _mm512_getexp_pd(x);  // floor(log2 x): x = m 2^k
+    // The interval of m: trunc(16 m - 16) in 0..15 (16 m - 16 < 16 for every m < 2).
+    const __m512d sixteen = _mm512_set1_pd(16.0);
+    const __m512i j = _mm512_cvttpd_epi64(_mm512_fmsub_pd(m, sixteen, sixteen));
     const __m512d c = _mm512_permutex2var_pd(t.reciprocal_low, j, t.reciprocal_high);
     const __m512d minus_log_c = _mm512_permutex2var_pd(t.minus_log_low, j, t.minus_log_high);
     const __m512d r = _mm512_fmsub_pd(m, c, one);  // one rounding: m c - 1 to full precision
