@@ -370,6 +370,47 @@ def test_condition_number_estimates_the_solved_system(kernel, n):
     assert fitted.condition_number >= exact / 3
 
 
+_NARROWER_LEVEL_SCRIPT = """
+import numpy as np, tpscore, tpscore._core as core
+from tpscore.reference import rbf as reference
+print(core.simd_level())
+rng = np.random.default_rng(41)
+for n in (150, 700):
+    xy = rng.uniform(-1.0, 1.0, size=(n, 2))
+    centres = np.column_stack([xy, 0.5 * np.exp(-(xy ** 2).sum(axis=1)) + 0.02 * rng.normal(size=n)])
+    values = np.sin(centres @ rng.normal(size=(3, 3))) + 0.01 * rng.normal(size=(n, 3))
+    fitted = tpscore.TPS(centres, values)
+    weights, affine = reference.fit(centres, values)
+    queries = rng.uniform(-1.1, 1.1, size=(5000, 3))
+    expected = reference.evaluate(queries, centres, weights, affine)
+    # As in test_blocked_fit_matches_reference: cond * eps of the values, times 100.
+    bound = 1e2 * np.finfo(float).eps * fitted.condition_number * np.abs(values).max()
+    print(n, np.abs(fitted(queries) - expected).max(), bound)
+"""
+
+
+@pytest.mark.parametrize("level", ["avx2", "baseline"])
+def test_narrower_instruction_sets_fit_and_evaluate_like_the_reference(level):
+    # The Cholesky micro-kernels and the tps evaluation are compiled for AVX-512, AVX2
+    # and baseline x86-64, and a CPU runs the widest it can; TPSCORE_SIMD makes a fresh
+    # process use a narrower one, so each is tested on a machine that has the wider.
+    import os
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-c", _NARROWER_LEVEL_SCRIPT], capture_output=True,
+                            text=True, timeout=300, env={**os.environ, "TPSCORE_SIMD": level})
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.split("\n")
+    # The override only lowers the level: never above what this CPU runs.
+    order = ["baseline", "avx2", "avx512"]
+    assert lines[0] == order[min(order.index(level), order.index(core.simd_level()))]
+    for line in lines[1:]:
+        if line:
+            n, error, bound = line.split()
+            assert float(error) < float(bound), f"n = {n}: error {error} above {bound}"
+
+
 def test_fit_does_not_depend_on_thread_count():
     rng = np.random.default_rng(21)
     centres = face_like_cloud(rng, 900)

@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "tpscore/parallel.hpp"
+#include "tpscore/simd.hpp"
 
 // Everything below the driver is written once, as templates over a register tile
 // shape, and instantiated three times inside functions compiled for AVX-512
@@ -38,9 +39,10 @@ namespace {
 
 // --- block sizes ---------------------------------------------------------------------
 // Panel width of the blocked factorisation: the trailing update is a rank-128
-// product, which keeps the micro-kernel busy, while the serial work on the panel's
-// diagonal block (128^3 / 3 flops) stays a few percent of the whole. 96, 128, 192 and
-// 256 timed within 10% of each other at n = 3000 (2 threads, AVX-512); 128 was best.
+// product, long enough to keep the micro-kernel busy, while the serial work on each
+// panel's diagonal block (128^3 / 3 flops) stays a few percent of the whole at the
+// sizes a face pipeline fits (n = 1000 to 5000). The panel is also one depth chunk
+// (kDepth), so each trailing update packs its operands once.
 constexpr std::int64_t kPanel = 128;
 // Inside a diagonal block and a panel solve, columns are eliminated 16 at a time
 // with plain vector code; the rest of their work is the tiled product. (16 factorised
@@ -52,8 +54,10 @@ constexpr std::int64_t kInner = 16;
 constexpr std::int64_t kDepth = 128;
 // Columns of the trailing matrix per parallel task, and rows per task of the panel
 // solve: fixed, so the partition (and the result) does not depend on the thread count.
+// Both are multiples of every tile's MR and NR (16 and 12, 8 and 6, 4 and 4), so a
+// task's rows are whole packed panels.
 constexpr std::int64_t kStripColumns = 96;
-constexpr std::int64_t kSolveRows = 256;
+constexpr std::int64_t kSolveRows = 192;
 
 // A register tile of MR = W * MV rows by NR columns: MV * NR vector accumulators.
 template <int W, int MV, int NR_>
@@ -438,8 +442,7 @@ struct Kernels {
                              std::int64_t ldb, std::int64_t k);
     void (*symmetric_multiply)(std::int64_t n, const double* a, std::int64_t lda, const double* diagonal,
                                const double* x, std::int64_t ldx, double* y, std::int64_t ldy, std::int64_t k);
-    const char* name;
-    int mr, nr;
+    int mr, nr;  // the packing's panel heights (the register tile's rows and columns)
 };
 
 // Scratch for the packed operands, one per thread, reused across calls.
@@ -469,10 +472,10 @@ std::vector<double>& scratch() {
                                           double* y, std::int64_t ldy, std::int64_t k) {                \
         symmetric_multiply_impl(n, a, lda, diagonal, x, ldx, y, ldy, k);                                \
     }                                                                                                   \
-    const Kernels NAME##_kernels = {NAME##_factor_block,     NAME##_solve_rows,                         \
-                                    NAME##_update,           NAME##_triangular_solve,                   \
-                                    NAME##_symmetric_multiply, #NAME,                          \
-                                    SHAPE::MR,               SHAPE::NR};
+    const Kernels NAME##_kernels = {NAME##_factor_block,       NAME##_solve_rows,                       \
+                                    NAME##_update,             NAME##_triangular_solve,                 \
+                                    NAME##_symmetric_multiply, SHAPE::MR,                               \
+                                    SHAPE::NR};
 
 #define TPSCORE_NO_TARGET
 TPSCORE_DEFINE_KERNELS(baseline, TPSCORE_NO_TARGET, TileBaseline)
@@ -483,9 +486,11 @@ TPSCORE_DEFINE_KERNELS(avx512, TPSCORE_TARGET_V4, TileAvx512)
 
 const Kernels& select_kernels() {
 #if TPSCORE_CHOLESKY_DISPATCH
-    __builtin_cpu_init();
-    if (__builtin_cpu_supports("x86-64-v4")) return avx512_kernels;
-    if (__builtin_cpu_supports("x86-64-v3")) return avx2_kernels;
+    switch (simd_level()) {
+        case SimdLevel::avx512: return avx512_kernels;
+        case SimdLevel::avx2: return avx2_kernels;
+        default: break;
+    }
 #endif
     return baseline_kernels;
 }
@@ -496,8 +501,6 @@ const Kernels& kernels() {
 }
 
 }  // namespace
-
-const char* cholesky_instruction_set() { return kernels().name; }
 
 std::int64_t cholesky_factor(std::int64_t n, double* a, std::int64_t lda) {
     const Kernels& k = kernels();
@@ -510,31 +513,24 @@ std::int64_t cholesky_factor(std::int64_t n, double* a, std::int64_t lda) {
         const std::int64_t m = n - j0 - jb;
         if (m == 0) break;
         double* panel = diagonal + jb;  // rows j0 + jb .. n - 1 of the block column
-        // The panel below the diagonal block: L21 = A21 L11^{-T}, by blocks of rows.
+        // The panel below the diagonal block, L21 = A21 L11^{-T}, by blocks of rows; each
+        // task then packs its rows for the trailing update, as the left operand (panels
+        // of mr rows) and as the right one (panels of nr rows), in the same pass (one
+        // wait for all threads per step fewer: on a busy machine every such wait can
+        // cost a scheduler's time slice).
         const std::int64_t row_blocks = (m + kSolveRows - 1) / kSolveRows;
+        packed_a.resize(static_cast<std::size_t>(((m + k.mr - 1) / k.mr) * k.mr * jb));
+        packed_b.resize(static_cast<std::size_t>(((m + k.nr - 1) / k.nr) * k.nr * jb));
         parallel_for(static_cast<std::size_t>(row_blocks), 1, [&](std::size_t begin, std::size_t end) {
             for (std::size_t r = begin; r < end; ++r) {
                 const std::int64_t r0 = static_cast<std::int64_t>(r) * kSolveRows;
-                k.solve_rows(std::min(kSolveRows, m - r0), jb, diagonal, lda, panel + r0, lda);
+                const std::int64_t rows = std::min(kSolveRows, m - r0);
+                k.solve_rows(rows, jb, diagonal, lda, panel + r0, lda);
+                pack(k.mr, rows, jb, panel + r0, 1, lda, packed_a.data() + r0 * jb);
+                pack(k.nr, rows, jb, panel + r0, 1, lda, packed_b.data() + r0 * jb);
             }
         });
-        // The trailing matrix: A22 -= L21 L21^T (lower triangle), by strips of columns.
-        // L21 is packed once per step, as the left operand (panels of mr rows) and as
-        // the right one (panels of nr rows); kStripColumns is a multiple of both, so a
-        // strip starts on a panel boundary of each.
-        const std::int64_t a_panels = (m + k.mr - 1) / k.mr;
-        const std::int64_t b_panels = (m + k.nr - 1) / k.nr;
-        packed_a.resize(static_cast<std::size_t>(a_panels * k.mr * jb));
-        packed_b.resize(static_cast<std::size_t>(b_panels * k.nr * jb));
-        parallel_for(static_cast<std::size_t>(a_panels + b_panels), 64, [&](std::size_t begin, std::size_t end) {
-            for (std::size_t q = begin; q < end; ++q) {
-                const bool left = static_cast<std::int64_t>(q) < a_panels;
-                const int rows = left ? k.mr : k.nr;
-                const std::int64_t r0 = (left ? static_cast<std::int64_t>(q) : static_cast<std::int64_t>(q) - a_panels) * rows;
-                pack(rows, std::min<std::int64_t>(rows, m - r0), jb, panel + r0, 1, lda,
-                     (left ? packed_a : packed_b).data() + r0 * jb);
-            }
-        });
+        // The trailing matrix, A22 -= L21 L21^T (its lower triangle), by strips of columns.
         // Strips are taken from a shared counter, widest work first, so a thread that
         // finishes early (or a core another process holds) does not leave the rest
         // waiting; each strip is computed wholly by one thread either way.

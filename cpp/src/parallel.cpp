@@ -22,7 +22,7 @@ std::atomic<int> requested_threads{0};
 
 int hardware_threads() {
     // Asked once: glibc answers by reading /sys/devices/system/cpu/online, which cost
-    // a few microseconds on every call (7% of a 100-centre TPS fit).
+    // a few microseconds on every call (a tenth of a 100-centre TPS fit).
     static const int count = [] {
         const unsigned hw = std::thread::hardware_concurrency();
         return hw > 0 ? static_cast<int>(hw) : 1;
@@ -118,7 +118,7 @@ private:
                 // Kernels often come in runs (a pipeline's steps, a benchmark's rounds):
                 // watch for the next job for a moment before going to sleep, since a
                 // sleeping thread takes tens of microseconds to wake (a 22,500 x 60
-                // TPS evaluation lasts 0.6 ms on two threads).
+                // TPS evaluation lasts about 0.7 ms on two threads).
                 const std::size_t seen = submitted_.load(std::memory_order_acquire);
                 lock.unlock();
                 const auto until = std::chrono::steady_clock::now() + kSpin;

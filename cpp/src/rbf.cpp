@@ -15,6 +15,7 @@
 
 #include "tpscore/dense_cholesky.hpp"
 #include "tpscore/parallel.hpp"
+#include "tpscore/simd.hpp"
 
 // glibc declares the vector variants of log and exp (libmvec: _ZGVbN2v_log,
 // _ZGVdN4v_log, _ZGVeN8v_log, ...) only under -ffast-math (bits/math-vector.h).
@@ -236,11 +237,13 @@ __attribute__((target("arch=x86-64-v4"))) void accumulate_tps_avx512(const doubl
             const __m512d dx0 = _mm512_sub_pd(x0, px), dx1 = _mm512_sub_pd(x1, px);
             const __m512d dy0 = _mm512_sub_pd(y0, py), dy1 = _mm512_sub_pd(y1, py);
             const __m512d dz0 = _mm512_sub_pd(z0, pz), dz1 = _mm512_sub_pd(z1, pz);
-            const __m512d d0 = _mm512_fmadd_pd(dz0, dz0, _mm512_fmadd_pd(dy0, dy0, _mm512_mul_pd(dx0, dx0)));
-            const __m512d d1 = _mm512_fmadd_pd(dz1, dz1, _mm512_fmadd_pd(dy1, dy1, _mm512_mul_pd(dx1, dx1)));
-            // U(0) = 0: d2 * log(d2 + DBL_MIN), as in phi_of_d2.
-            const __m512d u0 = _mm512_mul_pd(d0, log_avx512(_mm512_add_pd(d0, tiny), table));
-            const __m512d u1 = _mm512_mul_pd(d1, log_avx512(_mm512_add_pd(d1, tiny), table));
+            // d2 + DBL_MIN, which is d2 itself for any d2 above 1e-292 and keeps the log
+            // finite at a centre, where U = DBL_MIN log(DBL_MIN) = -1.6e-305 stands for 0
+            // (phi_of_d2 multiplies by d2 instead, one more operation a pair).
+            const __m512d d0 = _mm512_fmadd_pd(dz0, dz0, _mm512_fmadd_pd(dy0, dy0, _mm512_fmadd_pd(dx0, dx0, tiny)));
+            const __m512d d1 = _mm512_fmadd_pd(dz1, dz1, _mm512_fmadd_pd(dy1, dy1, _mm512_fmadd_pd(dx1, dx1, tiny)));
+            const __m512d u0 = _mm512_mul_pd(d0, log_avx512(d0, table));
+            const __m512d u1 = _mm512_mul_pd(d1, log_avx512(d1, table));
             for (int c = 0; c < Kdim; ++c) {
                 const __m512d w = _mm512_set1_pd(weights[c * n + j]);
                 sum0[c] = _mm512_fmadd_pd(w, u0, sum0[c]);
@@ -255,10 +258,7 @@ __attribute__((target("arch=x86-64-v4"))) void accumulate_tps_avx512(const doubl
 }
 static_assert(kBlock % 16 == 0, "accumulate_tps_avx512 takes 16 queries at a time");
 
-const bool has_avx512 = [] {
-    __builtin_cpu_init();
-    return __builtin_cpu_supports("x86-64-v4") != 0;
-}();
+const bool has_avx512 = simd_level() == SimdLevel::avx512;
 #endif
 
 // acc += sum_j w_j phi(|q - c_j|) for one block of queries, by the best loop this

@@ -4,7 +4,7 @@
 // Blocked (right-looking, panels of 128 columns), threaded over the trailing update
 // and the panel solve, with register-tiled SIMD micro-kernels compiled for AVX-512,
 // AVX2 + FMA and baseline x86-64 and chosen once at load time (one binary for every
-// CPU: no -march=native). Each output tile is computed by one thread with a fixed
+// CPU: no -march=native; see simd.hpp). Each output tile is computed by one thread with a fixed
 // order of operations, so the factor does not depend on the thread count.
 #pragma once
 
@@ -36,8 +36,5 @@ void triangular_solve(std::int64_t n, const double* l, std::int64_t ldl, bool tr
 void symmetric_multiply(std::int64_t n, const double* a, std::int64_t lda, const double* diagonal,
                         const double* x, std::int64_t ldx, double* y, std::int64_t ldy, std::int64_t k);
 
-/// The instruction set the micro-kernels run with on this CPU: "avx512", "avx2" or
-/// "baseline" (for the benchmark's report).
-const char* cholesky_instruction_set();
 
 }  // namespace tpscore
