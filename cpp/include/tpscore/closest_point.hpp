@@ -45,8 +45,8 @@ bool intersect_line_triangle(const double* o, const double* d, const double* a, 
 /// tested at once), tests a leaf's triangles together, branch-free, in SIMD lanes
 /// (the distance only; the point and its weights are computed once, for the winner),
 /// and starts from the leaf that held the previous query's answer: for queries in
-/// surface order (a grid, a mesh's vertices) that first bound prunes nearly the whole
-/// tree.
+/// surface order (a grid, a mesh's vertices) the descent then has a tight bound from
+/// its first step.
 ///
 /// `workers` (every batched query): the number of threads to use; <= 0 means
 /// tpscore::num_threads(); 1 runs serially.
