@@ -10,7 +10,7 @@ from importlib import metadata as _metadata
 
 from . import datasets, render
 from .face import landmarks
-from ._core import num_threads, set_num_threads
+from ._threads import max_threads, num_threads, set_num_threads
 from .face.average_face import AverageFace, build_average_face, load_average_face
 from .expression import (
     ActionUnit,
@@ -81,6 +81,7 @@ __all__ = [
     "MeshSurface",
     "RayHits",
     "closest_point_on_mesh",
+    "max_threads",
     "num_threads",
     "set_num_threads",
     # scan and mesh files
