@@ -1,11 +1,21 @@
 """Fidelity benchmark of expression transfer on synthetic Bosphorus-format scans.
 
-Generates development subjects with ../shared/tools/make_scans.py (cached under
-bench-output/scans), transfers each AU from a source subject to other target
-subjects, scores each prediction with ../shared/tools/score_transfer.py, and writes
-the per-AU table for each pipeline variant to bench-output/fidelity.md (and .json).
+Generates development subjects with ../shared/tools/make_scans.py (scans with their
+colour images, cached under bench-output/scans), transfers each AU from a source
+subject to other target subjects, scores each prediction with
+../shared/tools/score_transfer.py, and writes the per-AU table for each pipeline
+variant to bench-output/fidelity.md (and .json).
 
-    python benchmarks/fidelity.py [--subjects 0-19] [--offsets 1 2] [--variants noop thesis default]
+    python benchmarks/fidelity.py [--subjects 0-19] [--offsets 1 2]
+        [--variants noop published default geometry-only] [--registration 0-3]
+
+Variants: ``default`` (texture-aided when the scans have images), ``geometry-only``
+(the same scans with their images withheld), ``expressive-without-image`` (only the
+source's expressive scan withheld), ``published`` (the method as published), ``noop``
+(the target left neutral), each name of benchmarks/texture_ablations.py (the default
+with one part of the texture term undone), and parts of the default undone one at a time.
+``--registration`` also scores the registration alone (the source's own expressive
+scan predicted from its registered field) with and without texture.
 
 Skips (exit 0 with a message) when ../shared is absent.
 """
@@ -24,6 +34,8 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+
+from texture_ablations import ABLATIONS, ablation
 
 ROOT = Path(__file__).resolve().parents[1]
 AU_CODES = {"1": "UFAU_1_0", "2": "UFAU_2_0", "4": "UFAU_4_0", "12": "LFAU_12_0",
@@ -55,8 +67,11 @@ def parse_subjects(text: str) -> list[int]:
 
 
 def ensure_scans(shared: Path, out: Path, subjects: list[int], scan_args: list[str] = ()) -> None:
+    # scans written before the generator drew colour images are written again
+    images = "--texture-scale" not in scan_args or scan_args[list(scan_args).index("--texture-scale") + 1] != "0"
     missing = [s for s in subjects
-               if not (out / f"bs{s:03d}" / f"bs{s:03d}_LFAU_20_0_gt.npz").is_file()]
+               if not (out / f"bs{s:03d}" / f"bs{s:03d}_LFAU_20_0_gt.npz").is_file()
+               or (images and not (out / f"bs{s:03d}" / f"bs{s:03d}_LFAU_20_0.png").is_file())]
     if missing:
         print(f"generating scans of subjects {missing} ...", flush=True)
         subprocess.run([sys.executable, str(shared / "tools" / "make_scans.py"), str(out),
@@ -73,16 +88,19 @@ def main(argv=None) -> int:
     ap.add_argument("--offsets", type=int, nargs="+", default=[1, 2],
                     help="target = (source + offset) mod n for each offset: n pairs per offset")
     ap.add_argument("--aus", nargs="+", default=list(AU_CODES))
-    ap.add_argument("--variants", nargs="+", default=["noop", "thesis", "default"],
-                    help="noop, thesis, default, or an ablation (see the variants table "
-                         "in the code): landmark-model, dense-control-points, adapt-field, ...")
+    ap.add_argument("--variants", nargs="+", default=["noop", "published", "default", "geometry-only"],
+                    help="noop, published, default, geometry-only, expressive-without-image, a part "
+                         "of the default undone (see the variants table in the code), or a texture "
+                         "ablation (benchmarks/texture_ablations.py)")
     ap.add_argument("--motion-variants", nargs="*", default=[],
                     help="extra variants NAME=key:value,... changing the default's MotionOptions "
-                         "(e.g. shape4=shape_weight:4.0); list NAME under --variants too")
+                         "(e.g. lattice6=spacing_mm:6.0); list NAME under --variants too")
     ap.add_argument("--option-variants", nargs="*", default=[],
                     help="extra variants NAME=key:value,... changing the default's TransferOptions "
-                         "(e.g. smooth1=landmark_smoothing:1.0); list NAME under --variants too")
+                         "(e.g. seam5=transition_mm:5.0); list NAME under --variants too")
     ap.add_argument("--out", default=str(ROOT / "bench-output"))
+    ap.add_argument("--registration", default="",
+                    help="subjects (e.g. 0-3) whose registration alone is scored, with and without texture")
     ap.add_argument("--scan-args", default="",
                     help="extra make_scans.py options, e.g. \"--pose-deg 10 --missing-landmark-p 0.1\" "
                          "(the scans go to a folder named after them)")
@@ -93,7 +111,7 @@ def main(argv=None) -> int:
         print("fidelity benchmark skipped: ../shared (make_scans.py, score_transfer.py) not found")
         return 0
     import tpscore
-    from tpscore.expression_transfer import TransferOptions
+    from tpscore import TransferOptions
 
     scorer = load_module(shared / "tools" / "score_transfer.py", "score_transfer")
     faces = np.load(shared / "data" / "ict-facekit" / "face_model.npz")["faces"]
@@ -103,37 +121,19 @@ def main(argv=None) -> int:
     subjects = parse_subjects(args.subjects)
     ensure_scans(shared, scans, subjects, scan_args)
 
-    thesis = TransferOptions.thesis()
     default = TransferOptions()
     variants = {
-        "thesis": thesis,
-        "landmark-model": TransferOptions.landmark_model(),
-        "landmark-model-normalise": replace(TransferOptions.landmark_model(), alignment="normalise"),
-        "dense-control-points": replace(default, animation="control-points"),
-        "dense-control-points-wendland": replace(default, animation="control-points", warp="wendland"),
-        "default-mouth-scale": replace(default, scale_lower_face=True),
-        "default-hard-seam": replace(default, transition_mm=0.0),
-        # each of the defaults' departures from the method, added on its own
-        "thesis+similarity": replace(thesis, normalisation="similarity"),
-        "thesis+surface-snap": replace(thesis, snap="surface"),
-        "thesis+merge-landmarks": replace(thesis, merge_landmarks_mm=TransferOptions().merge_landmarks_mm),
-        "thesis+anchors": replace(thesis, anchors=True),
-        "default-fade-small": replace(default, still_motion_mm=0.5),
+        "published": TransferOptions.published(),
+        "default": default,
+        # the same transfers with colour images withheld (which scans: see `withheld`)
+        "geometry-only": default,
+        "expressive-without-image": default,
+        # parts of the default undone one at a time
         "default-no-mirror": replace(default, mirror_average=False),
         "default-no-spill": replace(default, upper_spill=0.0),
-        "adapt-field": replace(default, motion="adapt"),
-        "default": default,
-        # the registration's choices, each undone or added on its own
-        "default-raw-landmarks": replace(default, motion_options=replace(
-            default.motion_options, refine_radius_mm=0.0)),
-        "default-shape-term": replace(default, motion_options=replace(
-            default.motion_options, shape_weight=1.0)),
-        "default-membrane": replace(default, motion_options=replace(
-            default.motion_options, membrane_weight=10.0)),
-        "default-no-rest": replace(default, motion_options=replace(
-            default.motion_options, rest_weight=0.0)),
-        "registration-round-1": replace(default, motion_options=replace(
-            default.motion_options, refine_radius_mm=0.0, iterations=6, tangential_weight=0.05)),
+        "default-hard-seam": replace(default, transition_mm=0.0),
+        "default-no-rest": replace(default, motion=replace(default.motion, rest_weight=0.0)),
+        "texture-refined": replace(default, motion=replace(default.motion, texture_refine_after=5)),
     }
     # pipeline and registration settings from the command line: name=key:value,key:value
     def parse_variant(spec):
@@ -147,19 +147,25 @@ def main(argv=None) -> int:
         variants[name] = replace(default, **changes)
     for spec in args.motion_variants:
         name, changes = parse_variant(spec)
-        variants[name] = replace(default, motion_options=replace(default.motion_options, **changes))
+        variants[name] = replace(default, motion=replace(default.motion, **changes))
+    for name in ABLATIONS:
+        variants[name] = default
     for name in args.variants:
         if name not in variants and name != "noop":
             raise SystemExit(f"unknown variant {name!r}")
+    # which scans keep their colour images in each variant
+    withheld = {"geometry-only": {"neutral", "expressive", "target"}, "expressive-without-image": {"expressive"}}
 
     grids = {}
 
-    def grid(subject, code):
+    def grid(subject, code, role="", variant=""):
         key = (subject, code)
         if key not in grids:
             t0 = time.perf_counter()
             grids[key] = tpscore.load_scan(str(scan_path(scans, subject, code)) + ".bnt")
             timings["load+resample"].append(time.perf_counter() - t0)
+        if role in withheld.get(variant, ()):
+            return replace(grids[key], image=None)
         return grids[key]
 
     timings = defaultdict(list)
@@ -180,9 +186,11 @@ def main(argv=None) -> int:
                     else:
                         t0 = time.perf_counter()
                         try:
-                            with warnings.catch_warnings():
+                            with warnings.catch_warnings(), ablation(variant):
                                 warnings.simplefilter("ignore")  # missing landmarks are expected here
-                                res = tpscore.transfer(grid(source, "N_N_0"), grid(source, code), tgt, au,
+                                res = tpscore.transfer(grid(source, "N_N_0", "neutral", variant),
+                                                       grid(source, code, "expressive", variant),
+                                                       grid(target, "N_N_0", "target", variant), au,
                                                        options=variants[variant])
                             pred, neutral, mask = res.vertices, res.neutral, res.mask
                             for stage, seconds in res.timings.items():
@@ -241,13 +249,64 @@ def main(argv=None) -> int:
             continue
         three = 3 * np.mean(timings["load+resample"]) + np.mean(timings[f"transfer ({variant})"])
         lines.append(f"| {variant}: 3 scans loaded and resampled + transfer | {1e3 * three:.1f} ms |")
+    if args.registration:
+        lines += ["", *registration_alone(tpscore, scorer, faces, scans, parse_subjects(args.registration),
+                                          args.aus)]
     table = "\n".join(lines)
     print(table)
     out.mkdir(parents=True, exist_ok=True)
     stem = "fidelity" + "".join(scan_args).replace("--", "_")
     (out / f"{stem}.md").write_text(table + "\n")
-    (out / f"{stem}.json").write_text(json.dumps(rows, indent=1))
+    pairs = [dict(variant=variant, au=au, **{k: (v.item() if hasattr(v, "item") else v) for k, v in r.items()})
+             for (variant, au), rs in results.items() for r in rs]
+    (out / f"{stem}.json").write_text(json.dumps(dict(rows=rows, pairs=pairs), indent=1))
     return 0
+
+
+def registration_alone(tpscore, scorer, faces, scans, subjects, aus) -> list[str]:
+    """Rows scoring the registration alone: each subject's neutral grid moved by its
+    registered field (mirror-averaged as the transfer does) against its own expressive
+    scan, with the scans' images and with them withheld."""
+    from tpscore.expression import modelling
+
+    reference = tpscore.load_average_face().as_normalised_face()
+    library = tpscore.default_library()
+    rows = {}
+    for with_texture in (True, False):
+        for au in aus:
+            ratios, leaks = [], []
+            for subject in subjects:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    scans_of = [tpscore.load_scan(str(scan_path(scans, subject, code)) + ".bnt")
+                                for code in ("N_N_0", AU_CODES[au])]
+                    if not with_texture:
+                        scans_of = [replace(g, image=None) for g in scans_of]
+                    activations = library.parse(au)
+                    neutral = tpscore.normalise_face(scans_of[0], reference.landmarks)
+                    expressive = modelling.align_expressive(neutral, scans_of[0], scans_of[1],
+                                                     [a.action_unit.region for a in activations])
+                    field = modelling.dense_motion(neutral, expressive)
+                    if all(a.side is None for a in activations):
+                        field = modelling.mirrored(field, neutral)
+                points = neutral.grid.points.reshape(-1, 3)
+                predicted = neutral.transform.apply_inverse(points + field(points)).reshape(neutral.grid.points.shape)
+                score = scorer.score(predicted, neutral.transform.apply_inverse(neutral.grid.points),
+                                     str(scan_path(scans, subject, "N_N_0")) + "_gt.npz",
+                                     str(scan_path(scans, subject, AU_CODES[au])) + "_gt.npz", faces,
+                                     mask=neutral.grid.mask)
+                ratios.append(score["residual_ratio"])
+                leaks.append(score["leak_rms_mm"])
+            rows[(with_texture, au)] = (np.mean(ratios), np.mean(leaks))
+    header = "| registration alone (subjects " + f"{subjects[0]}-{subjects[-1]}) | mean | " + \
+        " | ".join(f"AU{au}" for au in aus) + " | leak mm |"
+    lines = [header, "|---|---:|" + "---:|" * len(aus) + "---:|"]
+    for with_texture, name in ((True, "with texture"), (False, "geometry only")):
+        ratios = [rows[(with_texture, au)][0] for au in aus]
+        leak = np.mean([rows[(with_texture, au)][1] for au in aus])
+        lines.append(f"| {name} | {np.mean(ratios):.3f} | " + " | ".join(f"{r:.3f}" for r in ratios)
+                     + f" | {leak:.3f} |")
+    return lines
 
 
 if __name__ == "__main__":

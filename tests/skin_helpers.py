@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tpscore.landmarks import N_LANDMARKS
+from tpscore.face.landmarks import N_LANDMARKS
 from tpscore.physics import Head, LinearMuscle, SphincterMuscle, SurfacePoint
 from tpscore.physics.system import SkinArrays
 

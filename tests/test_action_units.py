@@ -3,8 +3,8 @@ import json
 import numpy as np
 import pytest
 
-from tpscore.action_units import ActionUnit, ActionUnitLibrary, ControlPoint, default_library
-from tpscore.average_face import load_average_face
+from tpscore.expression.action_units import ActionUnit, ActionUnitLibrary, ControlPoint, default_library
+from tpscore.face.average_face import load_average_face
 
 
 @pytest.fixture(scope="module")
@@ -65,8 +65,10 @@ def test_one_sided_weights(library):
 def test_user_defined_au_round_trips_through_json(tmp_path, library):
     custom = ActionUnit(
         code="9", name="Nose wrinkler", region="lower", muscle="levator labii superioris alaeque nasi",
-        control_points=(ControlPoint("ala_left", "muscle", "left", {"Left nose peak": 1.0}, (0.0, 3.0)),
-                        ControlPoint("ala_right", "muscle", "right", {"Right nose peak": 1.0}, (0.0, 3.0))))
+        control_points=(ControlPoint(name="ala_left", kind="muscle", side="left", at={"Left nose peak": 1.0},
+                                     offset_mm=(0.0, 3.0)),
+                        ControlPoint(name="ala_right", kind="muscle", side="right", at={"Right nose peak": 1.0},
+                                     offset_mm=(0.0, 3.0))))
     library.add(custom, replace=True)
     path = tmp_path / "aus.json"
     library.to_json(path)

@@ -11,8 +11,8 @@ from tpscore import datasets
 from tpscore.adaptation import AdaptationWarning, adapt, find_outlier_landmarks
 from tpscore.calibration import axes_calibration, calibrate, rotation_angles
 from tpscore.correspondence import curvature_features, spread_vertices, triangulate_features
-from tpscore.landmarks import landmark_index
-from tpscore.preprocess import FaceGrid
+from tpscore.face.landmarks import landmark_index
+from tpscore.face.grid import FaceGrid
 
 
 def _face(identity=0, **kwargs):
@@ -298,7 +298,8 @@ def test_bad_arguments():
 
 
 def test_cli_adapt_end_to_end(tmp_path):
-    from tpscore import cli, io
+    from tpscore import cli
+    from tpscore.face import io
 
     _, template_grid = _face(10)
     scan, scan_grid = _face(11)

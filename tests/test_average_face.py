@@ -2,15 +2,15 @@ import numpy as np
 import pytest
 
 from tpscore import datasets
-from tpscore.average_face import (
+from tpscore.face.average_face import (
     AverageFace,
     afm_faces,
     build_average_face,
     consensus_landmarks,
     load_average_face,
 )
-from tpscore.landmarks import landmark_index
-from tpscore.preprocess import resample_scan
+from tpscore.face.landmarks import landmark_index
+from tpscore.face.grid import resample_scan
 
 
 def test_consensus_of_posed_copies_is_the_shape_in_the_canonical_frame():

@@ -4,7 +4,8 @@ import sys
 import numpy as np
 import pytest
 
-from tpscore import datasets, io
+from tpscore import datasets
+from tpscore.face import io
 from tpscore.cli import main
 
 

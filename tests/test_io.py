@@ -21,7 +21,7 @@ from tpscore import (
     write_lm3,
     write_mesh,
 )
-from tpscore.landmarks import LANDMARK_NAMES
+from tpscore.face.landmarks import LANDMARK_NAMES
 
 ZMIN = -1.0e9
 

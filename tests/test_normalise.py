@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tpscore.landmarks import N_LANDMARKS, landmark_index
-from tpscore.normalise import (
+from tpscore.face.landmarks import N_LANDMARKS, landmark_index
+from tpscore.face.normalise import (
     AFFINE_LANDMARKS,
     FrameTransform,
     landmark_transform,

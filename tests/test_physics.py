@@ -9,7 +9,7 @@ import pytest
 
 import tpscore
 from tpscore import datasets, physics
-from tpscore.landmarks import landmark_index
+from tpscore.face.landmarks import landmark_index
 from tpscore.physics import SkinMaterial, SkinModel, SkinWarning, SimulationError
 from tpscore.physics.fitting import carry_head, deform_from_vertices
 from tpscore.physics.head import REGIONS, build_template
@@ -278,7 +278,7 @@ def test_deform_from_vertices_reproduces_a_fitted_template(template):
 
 
 def test_simulate_command_fits_a_scan_and_writes_the_outputs(tmp_path, capsys):
-    from tpscore import io
+    from tpscore.face import io
     from tpscore.cli import main
 
     scan = datasets.make_face(datasets.random_identity(4), spacing_mm=1.0)

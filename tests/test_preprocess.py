@@ -23,7 +23,7 @@ from tpscore import (
     write_lm3,
     write_mesh,
 )
-from tpscore.preprocess import DEFAULT_MAX_GAP_MM
+from tpscore.face.grid import DEFAULT_MAX_GAP_MM
 
 ZMIN = -1.0e9
 SPACING = 0.7                      # source grid spacing, mm (as make_scans.py)
@@ -391,3 +391,83 @@ def test_load_scan_on_make_scans_output(shared, tmp_path):
     # The written landmarks carry 0.8 mm noise per axis; snapping adds at most half a
     # grid-cell diagonal (about 0.5 mm) on this ~1 mm grid.
     assert np.median(distance) < 2.0 and distance.max() < 6.0
+    # the colour image the .bnt names is read with it, and the grid's colours are the
+    # image at the vertices' u,v
+    assert grid.image is not None and grid.image.shape[2] == 3
+    colours = grid.colours
+    assert np.isfinite(colours[grid.mask]).all() and np.isnan(colours[~grid.mask]).all()
+    # skin, not the dark background: the generator draws the background at 12 % grey
+    assert np.median(colours[grid.mask]) > 0.2
+
+
+# --------------------------------------------------------------------------- colour images
+
+def checkerboard(height, width, cell=4):
+    rows, cols = np.mgrid[0:height, 0:width]
+    grey = np.where(((rows // cell) + (cols // cell)) % 2 == 0, 40, 220).astype(np.uint8)
+    return np.dstack([grey, grey // 2, 255 - grey])
+
+
+def test_load_scan_reads_the_named_image_beside_the_scan(tmp_path, scan):
+    from PIL import Image
+
+    write_bnt(tmp_path / "face.bnt", scan)           # names synthetic.png
+    image = checkerboard(2 * NROWS, 2 * NCOLS)
+    Image.fromarray(image).save(tmp_path / "synthetic.png")
+    with pytest.warns(LandmarkSnapWarning):
+        grid = load_scan(tmp_path / "face.bnt", shape=(60, 70))
+    np.testing.assert_array_equal(grid.image, image)
+    assert not grid.image.flags.writeable
+    # a vertex's colour is the image at its u,v: compare with a direct bilinear lookup
+    r, c = 30, 35
+    u, v = grid.uv[r, c]
+    x, y = u * image.shape[1] - 0.5, v * image.shape[0] - 0.5
+    x0, y0 = int(np.floor(x)), int(np.floor(y))
+    fx, fy = x - x0, y - y0
+    patch = image[y0:y0 + 2, x0:x0 + 2].astype(float)
+    expected = ((1 - fy) * ((1 - fx) * patch[0, 0] + fx * patch[0, 1])
+                + fy * ((1 - fx) * patch[1, 0] + fx * patch[1, 1])) / 255
+    np.testing.assert_allclose(grid.colours[r, c], expected, atol=1e-5)
+    # copies and moved grids keep the image
+    assert grid.copy().image is grid.image
+    assert grid.with_points(grid.points + 1.0).image is grid.image
+
+
+def test_missing_image_leaves_a_geometry_only_scan(tmp_path, scan):
+    write_bnt(tmp_path / "face.bnt", scan)
+    with pytest.warns(LandmarkSnapWarning):
+        grid = load_scan(tmp_path / "face.bnt", shape=(60, 70))
+    assert grid.image is None and grid.colours is None
+
+
+@pytest.mark.parametrize("make, problem", [
+    (lambda path: path.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 40), "corrupt|not an image"),
+    (lambda path: path.write_bytes(b"this is no picture"), "not an image"),
+    (lambda path: path.mkdir(), "folder"),
+    # half as wide as the u,v were made for: the pixels would be stretched two to one
+    (lambda path: __import__("PIL.Image").Image.fromarray(checkerboard(2 * NROWS, NCOLS)).save(path, "PNG"),
+     "does not fit"),
+])
+def test_bad_image_is_refused_naming_the_file(tmp_path, scan, make, problem):
+    write_bnt(tmp_path / "face.bnt", scan)
+    make(tmp_path / "synthetic.png")
+    with pytest.raises(ValueError, match=problem) as error:
+        load_scan(tmp_path / "face.bnt", shape=(60, 70))
+    assert "synthetic.png" in str(error.value)
+
+
+def test_truncated_image_is_refused(tmp_path, scan):
+    from PIL import Image
+
+    write_bnt(tmp_path / "face.bnt", scan)
+    Image.fromarray(checkerboard(2 * NROWS, 2 * NCOLS)).save(tmp_path / "full.png")
+    data = (tmp_path / "full.png").read_bytes()
+    (tmp_path / "synthetic.png").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match="synthetic.png.*(truncated|corrupt)"):
+        load_scan(tmp_path / "face.bnt", shape=(60, 70))
+
+
+def test_explicit_image_path_must_exist(tmp_path, scan):
+    write_bnt(tmp_path / "face.bnt", scan)
+    with pytest.raises(ValueError, match="nowhere.png.*not found"):
+        load_scan(tmp_path / "face.bnt", shape=(60, 70), image_path=tmp_path / "nowhere.png")

@@ -571,7 +571,7 @@ void SkinSystem::step_implicit(SkinState& state, const SkinControls& controls, d
     const std::int64_t n = particles();
     const Points force = forces(state, controls);
     if (!factor_)
-        factor_ = std::make_unique<PatternCholesky>(3 * n, pattern_indptr_.data(), pattern_indices_.data());
+        factor_ = std::make_unique<PatternCholesky>(3 * n, pattern_indptr_.data(), pattern_indices_.data(), nullptr);
     std::vector<double> values(pattern_indices_.size(), 0.0);
     Points kv;
     assemble(state, controls, dt, values, kv);

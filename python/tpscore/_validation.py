@@ -6,6 +6,8 @@ ValueError that names the argument and what is wrong with it.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = [
@@ -88,7 +90,33 @@ def as_positive(value, name: str, *, allow_zero: bool = False) -> float:
         number = float(value)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not np.isfinite(number) or number < 0 or (number == 0 and not allow_zero):
+    if not math.isfinite(number) or number < 0 or (number == 0 and not allow_zero):
         bound = ">= 0" if allow_zero else "> 0"
         raise ValueError(f"{name} must be finite and {bound}, got {value!r}")
     return number
+
+
+def check_options(options, *, positive=(), non_negative=(), counts=(), flags=(), choices=None) -> None:
+    """Validate the fields of an options dataclass in one place.
+
+    ``positive`` fields must be finite numbers > 0, ``non_negative`` ones >= 0,
+    ``counts`` whole numbers >= 1 (0 allowed where named as ``("field", 0)``),
+    ``flags`` booleans, and ``choices`` maps a field to its allowed values. Raises
+    ValueError naming the options class, the field and the value.
+    """
+    owner = type(options).__name__
+    for name in positive:
+        as_positive(getattr(options, name), f"{owner}.{name}")
+    for name in non_negative:
+        as_positive(getattr(options, name), f"{owner}.{name}", allow_zero=True)
+    for item in counts:
+        name, least = (item, 1) if isinstance(item, str) else item
+        value = getattr(options, name)
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+            raise ValueError(f"{owner}.{name} must be a whole number >= {least}, got {value!r}")
+    for name in flags:
+        if not isinstance(getattr(options, name), (bool, np.bool_)):
+            raise ValueError(f"{owner}.{name} must be True or False, got {getattr(options, name)!r}")
+    for name, allowed in (choices or {}).items():
+        if getattr(options, name) not in allowed:
+            raise ValueError(f"{owner}.{name} must be one of {tuple(allowed)}, got {getattr(options, name)!r}")

@@ -45,9 +45,9 @@ from .correspondence import (FeatureMesh, ScanTarget, curvature_features, match_
                              shape_descriptor, spread_vertices)
 from .csrbf import CSRBF, ConvergenceError, wendland
 from .fit_error import combined_error, distance_error, marker_error, surface_noise
-from .landmarks import N_LANDMARKS, landmark_index
+from .face.landmarks import N_LANDMARKS, landmark_index
 from .mesh import vertex_normals, voronoi_areas
-from .normalise import FrameTransform, similarity_transform
+from .face.normalise import FrameTransform, similarity_transform
 from .rbf import RBF
 from .spatial import KDTree, MeshSurface
 
@@ -184,8 +184,8 @@ def _evaluate(fields, points: np.ndarray) -> np.ndarray:
 
 def _as_mesh(obj, name: str):
     """(vertices, faces) from a FaceGrid, GridMesh, BntScan, MeshSurface or (vertices, faces)."""
-    from .io import BntScan
-    from .preprocess import FaceGrid, GridMesh
+    from .face.io import BntScan
+    from .face.grid import FaceGrid, GridMesh
 
     if isinstance(obj, FaceGrid):
         mesh = obj.mesh()
@@ -649,7 +649,7 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
     template_vertices, template_faces = _as_mesh(template, "template")
     scan_vertices, scan_faces = _as_mesh(scan, "scan")
     if scan_landmarks is None:
-        from .preprocess import FaceGrid
+        from .face.grid import FaceGrid
 
         if not isinstance(scan, FaceGrid):
             raise ValueError("scan_landmarks is required unless scan is a FaceGrid with landmarks")
@@ -702,7 +702,7 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
 
     names = None
     if len(template_lm) == N_LANDMARKS:
-        from .landmarks import LANDMARK_NAMES
+        from .face.landmarks import LANDMARK_NAMES
 
         names = LANDMARK_NAMES
     label = (lambda i: names[i]) if names else (lambda i: f"feature point {i}")

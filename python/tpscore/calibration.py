@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._validation import as_points
-from .landmarks import landmark_index
-from .normalise import FrameTransform, similarity_transform
+from .face.landmarks import landmark_index
+from .face.normalise import FrameTransform, similarity_transform
 
 __all__ = [
     "AxesCalibration",

@@ -85,8 +85,8 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .landmarks import LANDMARK_NAMES
-from .regions import smoothstep
+from .face.landmarks import LANDMARK_NAMES
+from .face.regions import smoothstep
 
 __all__ = [
     "FaceParameters",

@@ -1,8 +1,8 @@
-"""Headless pictures of face meshes: a NumPy z-buffer rasteriser and Pillow output.
+"""Headless pictures of face meshes: a compiled z-buffer rasteriser and Pillow output.
 
 No display and no OpenGL: meshes are projected orthographically, looking down -z (the
 face looks toward +z, so the viewer sees it from the front with the subject's left on
-the viewer's right), rasterised with a vectorised z-buffer, and shaded with Lambert
+the viewer's right), rasterised with a z-buffer (:mod:`tpscore.raster`), and shaded with Lambert
 diffuse, Blinn-Phong specular and ambient light from interpolated vertex normals.
 
 A :class:`Camera` fixes the view direction and the framing (centre and scale); build
@@ -14,8 +14,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from PIL import Image, ImageDraw
 
 from ._validation import as_faces, as_points
+from .raster import rasterise
 
 __all__ = [
     "Camera",
@@ -53,8 +55,6 @@ SPECULAR = 0.12
 SHININESS = 24.0
 MISSING_VALUE_COLOR = (0.6, 0.6, 0.6)
 FRAME_MARGIN = 0.06          # fraction of the picture left free around the framed meshes
-# Pixel-triangle candidates handled at once: bounds the temporaries to ~100 MB.
-RASTER_CHUNK_CANDIDATES = 2_000_000
 COLORBAR_WIDTH = 70
 
 # Anchors of a perceptually ordered dark-blue -> green -> yellow map, in the spirit
@@ -172,73 +172,6 @@ def _vertex_normals(view_vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return normals / np.where(length > 0, length, 1.0)
 
 
-def _rasterise(pixels: np.ndarray, depth: np.ndarray, faces: np.ndarray, width: int, height: int):
-    """Z-buffer: for each covered pixel the front-most (largest depth) triangle.
-
-    Returns the flat pixel ids, the triangle ids and the barycentric weights (k, 3)
-    of the winners.
-    """
-    zbuffer = np.full(width * height, -np.inf)
-    winner = np.full(width * height, -1, dtype=np.int64)
-    bary = np.zeros((width * height, 3))
-    if len(faces) == 0:
-        return np.zeros(0, dtype=np.int64), winner[:0], bary[:0]
-    corner_col = pixels[faces, 0]      # (m, 3)
-    corner_row = pixels[faces, 1]
-    # Pixel (r, c) has its centre at (c + 0.5, r + 0.5) in continuous coordinates.
-    c0 = np.maximum(np.ceil(corner_col.min(axis=1) - 0.5), 0).astype(np.int64)
-    c1 = np.minimum(np.floor(corner_col.max(axis=1) - 0.5), width - 1).astype(np.int64)
-    r0 = np.maximum(np.ceil(corner_row.min(axis=1) - 0.5), 0).astype(np.int64)
-    r1 = np.minimum(np.floor(corner_row.max(axis=1) - 0.5), height - 1).astype(np.int64)
-    box_w = np.maximum(c1 - c0 + 1, 0)
-    box_h = np.maximum(r1 - r0 + 1, 0)
-    counts = box_w * box_h
-    area2 = ((corner_col[:, 1] - corner_col[:, 0]) * (corner_row[:, 2] - corner_row[:, 0])
-             - (corner_col[:, 2] - corner_col[:, 0]) * (corner_row[:, 1] - corner_row[:, 0]))
-    counts[np.abs(area2) < 1e-12] = 0
-    candidates = np.flatnonzero(counts)
-    cumulative = np.cumsum(counts[candidates])
-    start = 0
-    while start < len(candidates):
-        # Largest run of triangles whose candidate pixels fit the chunk budget.
-        base = cumulative[start - 1] if start else 0
-        stop = int(np.searchsorted(cumulative, base + RASTER_CHUNK_CANDIDATES, side="right"))
-        stop = max(stop, start + 1)
-        chunk = candidates[start:stop]
-        start = stop
-
-        n = counts[chunk]
-        tri = np.repeat(chunk, n)
-        local = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
-        col = c0[tri] + local % box_w[tri]
-        row = r0[tri] + local // box_w[tri]
-        px, py = col + 0.5, row + 0.5
-        ax, bx, cx = corner_col[tri, 0], corner_col[tri, 1], corner_col[tri, 2]
-        ay, by, cy = corner_row[tri, 0], corner_row[tri, 1], corner_row[tri, 2]
-        inv_area = 1.0 / area2[tri]
-        w1 = ((px - ax) * (cy - ay) - (cx - ax) * (py - ay)) * inv_area
-        w2 = ((bx - ax) * (py - ay) - (px - ax) * (by - ay)) * inv_area
-        w0 = 1.0 - w1 - w2
-        # A small tolerance closes hairline cracks along shared edges.
-        inside = (w0 >= -1e-9) & (w1 >= -1e-9) & (w2 >= -1e-9)
-        tri, w0, w1, w2 = tri[inside], w0[inside], w1[inside], w2[inside]
-        pid = row[inside] * width + col[inside]
-        tri_depth = depth[faces[tri]]
-        z = w0 * tri_depth[:, 0] + w1 * tri_depth[:, 1] + w2 * tri_depth[:, 2]
-        order = np.lexsort((z, pid))          # by pixel, then by depth ascending
-        last = np.r_[pid[order][1:] != pid[order][:-1], True]
-        best = order[last]                    # one front-most candidate per pixel
-        pid, z = pid[best], z[best]
-        closer = z > zbuffer[pid]
-        pid = pid[closer]
-        best = best[closer]
-        zbuffer[pid] = z[closer]
-        winner[pid] = tri[best]
-        bary[pid] = np.column_stack([w0[best], w1[best], w2[best]])
-    covered = np.flatnonzero(winner >= 0)
-    return covered, winner[covered], bary[covered]
-
-
 def _as_color(color, name) -> np.ndarray:
     array = np.asarray(color, dtype=np.float64).reshape(-1)
     if array.shape != (3,) or not np.isfinite(array).all():
@@ -311,7 +244,10 @@ def render_mesh(vertices, faces, *, width: int = 400, height: int = 400, view="f
     safe = np.where(finite[:, None], points, 0.0)
     view_points = camera.to_view(safe)
     pixels = camera.to_pixels(view_points)
-    covered, tri, bary = _rasterise(pixels, view_points[:, 2], triangles, camera.width, camera.height)
+    triangle, barycentric = rasterise(pixels, view_points[:, 2], triangles, camera.width, camera.height)
+    covered = np.flatnonzero(triangle.reshape(-1) >= 0)
+    tri = triangle.reshape(-1)[covered]
+    bary = barycentric.reshape(-1, 3)[covered]
 
     image = np.tile(back, (camera.width * camera.height, 1))
     if len(covered):
@@ -422,7 +358,6 @@ def heatmap_colors(values, vmax: float | None = None, cmap: str = "viridis",
 
 
 def _to_pil(image):
-    from PIL import Image
 
     array = np.asarray(image)
     if array.ndim != 3 or array.shape[2] != 3 or array.dtype != np.uint8:
@@ -433,7 +368,6 @@ def _to_pil(image):
 def draw_colorbar(image, vmin: float, vmax: float, *, cmap: str = "viridis",
                   unit: str = "mm", width: int = COLORBAR_WIDTH) -> np.ndarray:
     """Append a vertical colour bar with its value range to the right of `image`."""
-    from PIL import ImageDraw
 
     picture = np.asarray(image)
     height = picture.shape[0]
@@ -484,7 +418,6 @@ def error_heatmap(vertices, faces, errors_mm, *, vmax: float | None = None, widt
 def side_by_side(images, titles=None, *, title_height: int = 24, gap: int = 6,
                  background=DEFAULT_BACKGROUND) -> np.ndarray:
     """Place pictures left to right (top-aligned) with a title above each."""
-    from PIL import ImageDraw
 
     pictures = [np.asarray(image) for image in images]
     if not pictures:
@@ -532,7 +465,6 @@ def save_gif(path, frames, fps: float = 12.0) -> None:
     rate = float(fps)
     if not np.isfinite(rate) or rate <= 0:
         raise ValueError(f"fps must be finite and > 0, got {fps!r}")
-    from PIL import Image
 
     paletted = [p.convert("P", palette=Image.Palette.ADAPTIVE, colors=256) for p in pictures]
     paletted[0].save(path, format="GIF", save_all=True, append_images=paletted[1:],

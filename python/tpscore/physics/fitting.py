@@ -27,8 +27,8 @@ from typing import Callable
 import numpy as np
 
 from .._validation import as_points
-from ..elastic import face_frame
-from ..landmarks import landmark_index
+from ..face.normalise import face_frame
+from ..face.landmarks import landmark_index
 from .head import Head, load_template
 from .muscles import SphincterMuscle
 

@@ -27,7 +27,7 @@ from typing import Mapping
 import numpy as np
 
 from .._validation import as_faces, as_points
-from ..landmarks import LANDMARK_NAMES, MIRROR_LANDMARK, N_LANDMARKS, landmark_index
+from ..face.landmarks import LANDMARK_NAMES, MIRROR_LANDMARK, N_LANDMARKS, landmark_index
 from .muscles import LinearMuscle, SphincterMuscle, place_muscles, read_muscle_file
 
 __all__ = [
@@ -275,7 +275,7 @@ class Head:
     # ---------------------------------------------------------------- files
     def save(self, path) -> None:
         """Write the geometry (not the muscles, which are placed from their definitions)."""
-        from ..io import write_npz
+        from ..face.io import write_npz
 
         write_npz(path, vertices=self.vertices, faces=self.faces, skull_vertices=self.skull_vertices,
                   landmark_vertices=self.landmark_vertices, regions=self.regions,

@@ -38,7 +38,7 @@ from typing import Mapping
 import numpy as np
 
 from .._validation import as_positive
-from ..landmarks import anchor_point, landmark_index, validate_anchor
+from ..face.landmarks import anchor_point, landmark_index, validate_anchor
 
 __all__ = [
     "SurfacePoint",
@@ -320,7 +320,7 @@ def place_muscles(vertices, faces, skull_vertices, landmarks, definitions=None) 
     -------
     tuple of LinearMuscle and SphincterMuscle
     """
-    from ..elastic import face_frame
+    from ..face.normalise import face_frame
     from ..spatial import MeshSurface
 
     data = read_muscle_file() if definitions is None else definitions

@@ -1,0 +1,84 @@
+"""The ``tpscore adapt`` subcommand: fit a template mesh to a scan.
+
+    tpscore adapt TEMPLATE SCAN --template-landmarks T.lm3 --scan-landmarks S.lm3
+                  --out fitted.obj [--png fit.png] [--levels 6] [--calibration similarity]
+
+TEMPLATE is any mesh trimesh reads; SCAN a mesh or a Bosphorus .bnt. The fitted mesh
+keeps the template's vertex order, count and faces, in the scan's frame.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+__all__ = ["add_adapt_parser", "adapt_command"]
+
+
+def add_adapt_parser(sub) -> None:
+    p = sub.add_parser("adapt", help="deform a template mesh onto a scan (global RBF + multilevel CSRBF)")
+    p.add_argument("template", metavar="TEMPLATE", help="template mesh (OBJ, PLY, ...)")
+    p.add_argument("scan", metavar="SCAN", help="scan: a mesh or a Bosphorus .bnt")
+    p.add_argument("--template-landmarks", required=True, metavar="FILE", help=".lm3, .csv or .json")
+    p.add_argument("--scan-landmarks", metavar="FILE", help="default: the .lm3/.csv/.json beside SCAN")
+    p.add_argument("--out", required=True, metavar="MESH", help="fitted template (OBJ or PLY)")
+    p.add_argument("--png", metavar="PNG", help="render scan, template and fit side by side")
+    p.add_argument("--levels", type=int, default=6, help="largest number of levels (default 6)")
+    p.add_argument("--calibration", choices=["similarity", "axes", "none"], default="similarity")
+    p.add_argument("--rho", type=float, default=30.0, help="error coefficient of the global RBF (mm, default 30)")
+    p.add_argument("--refinement", choices=["surface", "interpolate"], default="surface",
+                   help="surface: point-to-plane levels (default); interpolate: the method's ray pairs")
+    p.add_argument("--quiet", action="store_true")
+
+
+def adapt_command(args) -> int:
+    from .. import render
+    from ..face import io
+    from ..adaptation import adapt
+    from ..face.grid import FaceGrid
+
+    start = time.perf_counter()
+
+    def say(message: str) -> None:
+        if not args.quiet:
+            print(f"[{time.perf_counter() - start:7.2f} s] {message}", flush=True)
+
+    template_vertices, template_faces = io.read_mesh(args.template)
+    if len(template_faces) == 0:
+        raise ValueError(f"{args.template!r}: the template has no faces; adaptation needs a mesh")
+    template_landmarks = io.read_landmarks(args.template_landmarks)
+    scan_path = Path(args.scan)
+    if scan_path.suffix.lower() == ".bnt":
+        grid = FaceGrid.from_points(io.read_bnt(scan_path).points)
+        mesh = grid.mesh()
+        scan = (mesh.vertices, mesh.faces)
+    else:
+        scan = io.read_mesh(scan_path)
+        if len(scan[1]) == 0:
+            raise ValueError(f"{args.scan!r}: the scan has no faces; give a mesh or a .bnt grid")
+    landmarks_path = args.scan_landmarks
+    if landmarks_path is None:
+        found = [scan_path.with_suffix(s) for s in (".lm3", ".csv", ".json") if scan_path.with_suffix(s).is_file()]
+        if not found:
+            raise ValueError(f"no landmark file beside {args.scan!r}; pass --scan-landmarks")
+        landmarks_path = found[0]
+    scan_landmarks = io.read_landmarks(landmarks_path)
+    say(f"read template ({len(template_vertices)} vertices) and scan ({len(scan[0])} vertices)")
+
+    def progress(level) -> None:
+        say(f"level {level.level} ({level.method}, {level.pairs} pairs): Ed {level.distance_error:.3f} mm^2, "
+            f"coverage {level.coverage:.2f}")
+
+    result = adapt((template_vertices, template_faces), scan, template_landmarks, scan_landmarks,
+                   levels=args.levels, calibration=args.calibration, rho=args.rho,
+                   refinement=args.refinement, progress=progress)
+    say(f"kept level {result.best_level}")
+    io.write_mesh(args.out, result.vertices, template_faces)
+    say(f"wrote {args.out}")
+    if args.png:
+        camera = render.fit_camera([scan[0], result.vertices])
+        images = [render.render_mesh(scan[0], scan[1], camera=camera),
+                  render.render_mesh(result.transform.apply_inverse(template_vertices), template_faces, camera=camera),
+                  render.render_mesh(result.vertices, template_faces, camera=camera)]
+        render.save_png(args.png, render.side_by_side(images, ["scan", "template (calibrated)", "fitted"]))
+        say(f"wrote {args.png}")
+    return 0

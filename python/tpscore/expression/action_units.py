@@ -1,0 +1,247 @@
+"""The action-unit library: FACS action units as control points on the reference face.
+
+Each action unit (AU) has muscle control points (along the fibres of the muscle that
+makes it) and wrinkle control points (where the skin bulges or folds), a region of the
+face (upper or lower) and a side for every point (left, right or centre), so that an
+AU can be animated on one side only (``12L``). The library is data:
+``tpscore/data/action_units.json`` (documented in the README); users load their own
+with :meth:`ActionUnitLibrary.from_json` or add AUs with :meth:`ActionUnitLibrary.add`.
+
+A control point's position is defined relative to the landmarks: a weighted mean of
+named landmarks plus an (x, y) offset in mm in the reference frame; its depth is read
+off the reference surface when the points are placed.
+"""
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from ..face.landmarks import AnchoredPoint
+
+__all__ = [
+    "ControlPoint",
+    "ActionUnit",
+    "Activation",
+    "ActionUnitLibrary",
+    "default_library",
+    "REGIONS",
+]
+
+REGIONS = ("upper", "lower")
+_KINDS = ("muscle", "wrinkle")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ControlPoint(AnchoredPoint):
+    """One named control point of an AU: an anchored point of the muscle it follows
+    (``kind="muscle"``) or of a fold the skin makes (``kind="wrinkle"``)."""
+
+    kind: str
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.kind not in _KINDS:
+            raise ValueError(f"control point {self.name!r}: kind must be one of {_KINDS}, got {self.kind!r}")
+
+
+@dataclass(frozen=True)
+class ActionUnit:
+    """A FACS action unit: its control points and the region of the face it moves."""
+
+    code: str
+    name: str
+    region: str
+    control_points: tuple[ControlPoint, ...]
+    muscle: str = ""
+    action: str = ""
+
+    def __post_init__(self):
+        if not re.fullmatch(r"[0-9A-Za-z_]+", self.code) or self.code[-1] in "LR":
+            raise ValueError(f"AU code {self.code!r} must be alphanumeric and not end in L or R")
+        if self.region not in REGIONS:
+            raise ValueError(f"AU {self.code}: region must be one of {REGIONS}, got {self.region!r}")
+        if len(self.control_points) < 1:
+            raise ValueError(f"AU {self.code}: needs at least one control point")
+        names = [p.name for p in self.control_points]
+        if len(set(names)) != len(names):
+            raise ValueError(f"AU {self.code}: control point names are not unique")
+        object.__setattr__(self, "control_points", tuple(self.control_points))
+
+    @property
+    def names(self) -> list[str]:
+        return [p.name for p in self.control_points]
+
+    def positions_xy(self, landmarks) -> np.ndarray:
+        """(k, 2) control point positions for a face with these (22, 3) landmarks."""
+        lm = np.asarray(landmarks, dtype=np.float64)
+        return np.array([p.position_xy(lm) for p in self.control_points])
+
+    def side_weights(self, side: str | None) -> np.ndarray:
+        """Per-point weight of the motion: all 1 for both sides; for one side, 1 on that
+        side, 0 on the other, and 0.5 on the midline (half of a centre point's motion
+        belongs to each side)."""
+        if side is None:
+            return np.ones(len(self.control_points))
+        keep = {"L": "left", "R": "right"}[side]
+        return np.array([1.0 if p.side == keep else 0.5 if p.side == "centre" else 0.0
+                         for p in self.control_points])
+
+    def to_dict(self) -> dict:
+        return {
+            "code": self.code, "name": self.name, "region": self.region,
+            "muscle": self.muscle, "action": self.action,
+            "control_points": [
+                {"name": p.name, "kind": p.kind, "side": p.side, "at": dict(p.at),
+                 "offset_mm": list(p.offset_mm), **({"note": p.note} if p.note else {})}
+                for p in self.control_points
+            ],
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping) -> "ActionUnit":
+        try:
+            points = tuple(
+                ControlPoint(name=p["name"], kind=p["kind"], side=p["side"], at=p["at"],
+                             offset_mm=tuple(p.get("offset_mm", (0.0, 0.0))), note=p.get("note", ""))
+                for p in data["control_points"]
+            )
+            return cls(code=str(data["code"]), name=data["name"], region=data["region"],
+                       control_points=points, muscle=data.get("muscle", ""),
+                       action=data.get("action", ""))
+        except KeyError as exc:
+            raise ValueError(f"action unit entry lacks the field {exc.args[0]!r}") from None
+
+
+@dataclass(frozen=True)
+class Activation:
+    """An AU at a weight, on both sides (side None) or one side ('L' or 'R')."""
+
+    action_unit: ActionUnit
+    side: str | None = None
+    weight: float = 1.0
+
+    @property
+    def label(self) -> str:
+        return f"AU{self.action_unit.code}{self.side or ''}"
+
+
+@dataclass
+class ActionUnitLibrary:
+    """A set of action units and the emotion prototypes built from them."""
+
+    action_units: dict[str, ActionUnit] = field(default_factory=dict)
+    emotions: dict[str, dict[str, float]] = field(default_factory=dict)
+
+    @classmethod
+    def from_json(cls, path) -> "ActionUnitLibrary":
+        """Load a library from a JSON file in the format of the shipped one."""
+        try:
+            text = Path(path).read_text(encoding="utf-8")
+            data = json.loads(text)
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{path}: cannot read an action-unit library: {exc}") from None
+        return cls.from_dict(data, source=str(path))
+
+    @classmethod
+    def from_dict(cls, data: Mapping, source: str = "library") -> "ActionUnitLibrary":
+        if not isinstance(data, Mapping) or "action_units" not in data:
+            raise ValueError(f"{source}: expected an object with an 'action_units' list")
+        library = cls()
+        for entry in data["action_units"]:
+            library.add(ActionUnit.from_dict(entry))
+        for name, recipe in data.get("emotions", {}).items():
+            library.add_emotion(name, recipe)
+        return library
+
+    def to_json(self, path) -> None:
+        doc = {"format": "tpscore-action-units", "version": 1,
+               "action_units": [au.to_dict() for au in self.action_units.values()],
+               "emotions": self.emotions}
+        Path(path).write_text(json.dumps(doc, indent=1), encoding="utf-8")
+
+    def add(self, action_unit: ActionUnit, *, replace: bool = False) -> None:
+        if action_unit.code in self.action_units and not replace:
+            raise ValueError(f"AU {action_unit.code} is already in the library (pass replace=True)")
+        self.action_units[action_unit.code] = action_unit
+
+    def add_emotion(self, name: str, recipe: Mapping[str, float]) -> None:
+        """Register an emotion as weights over AU codes (with optional side, e.g. '12L')."""
+        recipe = {str(k): float(v) for k, v in recipe.items()}
+        for code in recipe:
+            self._split_code(code)  # raises for an unknown AU
+        self.emotions[name.lower()] = recipe
+
+    @property
+    def codes(self) -> list[str]:
+        return list(self.action_units)
+
+    def __getitem__(self, code) -> ActionUnit:
+        return self.action_units[self._split_code(str(code))[0]]
+
+    def __contains__(self, code) -> bool:
+        try:
+            self._split_code(str(code))
+        except ValueError:
+            return False
+        return True
+
+    def _split_code(self, token: str) -> tuple[str, str | None]:
+        token = token.strip().upper().removeprefix("AU")
+        side = None
+        if token and token[-1] in "LR" and token[:-1] in self.action_units:
+            token, side = token[:-1], token[-1]
+        if token not in self.action_units:
+            raise ValueError(
+                f"unknown action unit {token!r}; known: {', '.join(self.action_units)} "
+                f"(add L or R for one side), or an emotion: {', '.join(self.emotions)}"
+            )
+        return token, side
+
+    def parse(self, spec) -> list[Activation]:
+        """Parse an AU request into activations.
+
+        Accepts ``"12"``, ``"12L"``, ``"AU12R"``, several joined by ``,`` or ``+``
+        (``"1,4,15"``), a weight after a colon (``"12:0.5"``), an emotion name
+        (``"sadness"``), a mapping ``{"12": 1.0}`` or a list of such tokens.
+        Repeated AUs on the same side add their weights.
+        """
+        if isinstance(spec, Mapping):
+            tokens = [(str(k), float(v)) for k, v in spec.items()]
+        else:
+            items = [spec] if isinstance(spec, (str, int)) else list(spec)
+            tokens = []
+            for item in items:
+                for part in re.split(r"[,+\s]+", str(item).strip()):
+                    if not part:
+                        continue
+                    code, _, weight = part.partition(":")
+                    try:
+                        tokens.append((code, float(weight) if weight else 1.0))
+                    except ValueError:
+                        raise ValueError(f"bad weight in {part!r}: expected a number after ':'") from None
+        if not tokens:
+            raise ValueError("no action unit given")
+        merged: dict[tuple[str, str | None], float] = {}
+        for code, weight in tokens:
+            if not np.isfinite(weight):
+                raise ValueError(f"weight of {code!r} must be finite")
+            if code.lower() in self.emotions:
+                for sub, w in self.emotions[code.lower()].items():
+                    key = self._split_code(sub)
+                    merged[key] = merged.get(key, 0.0) + w * weight
+                continue
+            key = self._split_code(code)
+            merged[key] = merged.get(key, 0.0) + weight
+        return [Activation(self.action_units[c], s, w) for (c, s), w in merged.items()]
+
+
+def default_library() -> ActionUnitLibrary:
+    """The shipped library: AU1, 2, 4 (upper face), AU12, 14, 15, 17, 20 (lower face)."""
+    with resources.files("tpscore").joinpath("data/action_units.json").open("r", encoding="utf-8") as fh:
+        return ActionUnitLibrary.from_dict(json.load(fh), source="action_units.json")

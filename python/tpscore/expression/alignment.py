@@ -1,0 +1,234 @@
+"""Rigid alignment of one person's expressive scan to the same person's neutral scan.
+
+Normalising an expressive scan on its own landmarks removes real motion: the chin
+middle, one of the affine normalisation's four landmarks, moves in AU17, and every
+landmark an AU moves pulls a least-squares fit with it. A person's skull does not
+change between two scans, so the expressive scan is brought onto the neutral one by
+a rotation and a translation only:
+
+1. **landmarks**: the rigid least-squares fit over the landmarks both scans have,
+   refitted without the landmarks that the expression moved (residuals well above the
+   rest), which gives a start within a few degrees;
+2. **ICP on the surfaces**: point-to-plane iterative closest points from a sample of
+   the expressive grid's vertices to the neutral surface (exact closest points on its
+   triangles, :class:`tpscore.MeshSurface`). Pairs are weighted by a Tukey biweight
+   of their distance, with the scale taken from the median distance, so the parts of
+   the face the expression moved, and the edges where the two scans do not overlap,
+   drop out while the still parts (forehead, nose, temples) decide the pose.
+
+The result maps the expressive scan's frame onto the neutral scan's frame.
+
+The same fit finds a face's plane of symmetry (:func:`fit_mirror_symmetry`): the scan
+mirrored (left and right landmarks swapped) is aligned rigidly onto itself, and the
+reflection followed by that alignment is the face's mirror map.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..face.landmarks import MIRROR_LANDMARK
+from ..face.normalise import FrameTransform, similarity_transform
+from ..face.grid import FaceGrid
+from ..spatial import MeshSurface
+
+__all__ = ["rigid_landmark_fit", "align_rigid", "RigidAlignment", "fit_mirror_symmetry"]
+
+# A rigid fit over landmarks needs three pairs not on one line.
+_MIN_RIGID_LANDMARKS = 3
+
+
+def rigid_landmark_fit(moving_landmarks, fixed_landmarks, *, reject_factor: float = 2.5,
+                       min_residual_mm: float = 2.0) -> FrameTransform:
+    """Rigid fit of one face's landmarks onto another's, robust to moved landmarks.
+
+    Fits all landmarks present in both, then refits without those whose residual is
+    above ``reject_factor`` times the median residual (and above ``min_residual_mm``),
+    so landmarks an expression moved do not tilt the fit.
+
+    Raises
+    ------
+    ValueError
+        Fewer than three landmarks present in both faces.
+    """
+    a = np.asarray(moving_landmarks, dtype=np.float64)
+    b = np.asarray(fixed_landmarks, dtype=np.float64)
+    both = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
+    if both.sum() < _MIN_RIGID_LANDMARKS:
+        raise ValueError(f"rigid alignment needs at least {_MIN_RIGID_LANDMARKS} landmarks present "
+                         f"in both scans, got {int(both.sum())}")
+    weights = both.astype(np.float64)
+    transform = similarity_transform(a, b, scale=False, weights=weights)
+    for _ in range(2):
+        residual = np.linalg.norm(transform.apply(a) - b, axis=1)
+        limit = max(reject_factor * np.nanmedian(residual[both]), min_residual_mm)
+        keep = both & (residual <= limit)
+        if keep.sum() < _MIN_RIGID_LANDMARKS or np.array_equal(keep, weights > 0):
+            break
+        weights = keep.astype(np.float64)
+        transform = similarity_transform(a, b, scale=False, weights=weights)
+    return transform
+
+
+class RigidAlignment:
+    """The outcome of :func:`align_rigid`.
+
+    Attributes
+    ----------
+    transform : FrameTransform
+        Rigid map from the moving scan's frame to the fixed scan's frame.
+    landmark_transform : FrameTransform
+        The landmark-only start of the ICP.
+    iterations : int
+        ICP iterations run.
+    inlier_rms_mm : float
+        RMS point-to-plane distance of the pairs with full weight at the end.
+    """
+
+    def __init__(self, transform, landmark_transform, iterations, inlier_rms_mm):
+        self.transform = transform
+        self.landmark_transform = landmark_transform
+        self.iterations = iterations
+        self.inlier_rms_mm = inlier_rms_mm
+
+    def __repr__(self) -> str:
+        return (f"RigidAlignment(iterations={self.iterations}, "
+                f"inlier_rms_mm={self.inlier_rms_mm:.3f})")
+
+
+def align_rigid(moving: FaceGrid, fixed: FaceGrid, *, fixed_surface: MeshSurface | None = None,
+                still_weight=None, iterations: int = 30, sample_step: int = 3, tukey_factor: float = 4.0,
+                min_scale_mm: float = 0.3, tolerance_mm: float = 1e-3) -> RigidAlignment:
+    """Rigidly align a scan of a person onto another scan of the same person.
+
+    Parameters
+    ----------
+    moving, fixed : FaceGrid
+        The expressive scan (moving) and the neutral scan (fixed), each in its own
+        scan frame, with landmarks (NaN rows missing).
+    fixed_surface : MeshSurface, optional
+        The fixed grid's surface, if already built.
+    iterations : int
+        Most ICP iterations.
+    sample_step : int
+        Use every ``sample_step``-th row and column of the moving grid (a 150 x 150
+        grid gives about 2,000 points at 3; the pose has six unknowns).
+    tukey_factor : float
+        Pairs farther than this many times the robust scale get weight 0.
+    min_scale_mm : float
+        Lower bound of the robust scale (about twice the scanner noise), so that an
+        exact fit does not reject every pair.
+    tolerance_mm : float
+        Stop when the update moves no sample point by more than this.
+
+    Returns
+    -------
+    RigidAlignment
+    """
+    start = rigid_landmark_fit(moving.landmarks, fixed.landmarks)
+    if fixed_surface is None:
+        mesh = fixed.mesh()
+        if len(mesh.faces) == 0:
+            raise ValueError("the fixed scan has no triangles")
+        fixed_surface = MeshSurface(mesh.vertices, mesh.faces)
+    sample_mask = np.zeros(moving.shape, dtype=bool)
+    sample_mask[::sample_step, ::sample_step] = True
+    sample_mask &= moving.mask
+    sample = moving.points[sample_mask]
+    prior = (np.ones(len(sample)) if still_weight is None
+             else np.asarray(still_weight, dtype=np.float64)[sample_mask])
+    if prior.sum() < 10:
+        prior = np.ones(len(sample))
+    if len(sample) < 10:
+        return RigidAlignment(start, start, 0, float("nan"))
+    faces = fixed_surface.faces
+    vertices = fixed_surface.vertices
+    face_normals = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
+                            vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    lengths = np.linalg.norm(face_normals, axis=1)
+    face_normals /= np.where(lengths > 0, lengths, 1.0)[:, None]
+
+    matrix = start.matrix.copy()
+    done = 0
+    inlier_rms = float("nan")
+    for done in range(1, iterations + 1):
+        moved = sample @ matrix[:3, :3].T + matrix[:3, 3]
+        closest = fixed_surface.closest_point(moved)
+        normals = face_normals[closest.triangles]
+        # point-to-plane distance; a closest point on a triangle's edge (scan outline)
+        # lies off the plane and is down-weighted by its large Euclidean distance too
+        signed = np.einsum("ij,ij->i", moved - closest.points, normals)
+        scale = max(1.4826 * float(np.median(closest.distances[prior > 0.5])
+                                   if (prior > 0.5).any() else np.median(closest.distances)),
+                    min_scale_mm)
+        u = closest.distances / (tukey_factor * scale)
+        weight = np.where(u < 1.0, (1.0 - u * u) ** 2, 0.0) * prior
+        if weight.sum() < 6:
+            break
+        # linearised point-to-plane step: rotation vector omega and translation t
+        # (about the sample's centroid, which keeps the 6 x 6 normal equations well scaled)
+        centre = weight @ moved / weight.sum()
+        jac = np.hstack([np.cross(moved - centre, normals), normals])
+        normal_matrix = (jac * weight[:, None]).T @ jac + 1e-9 * np.eye(6)
+        step = np.linalg.solve(normal_matrix, -(jac * weight[:, None]).T @ signed)
+        rotation = Rotation.from_rotvec(step[:3]).as_matrix()
+        update = np.eye(4)
+        update[:3, :3] = rotation
+        update[:3, 3] = centre + step[3:] - rotation @ centre
+        matrix = update @ matrix
+        inlier_rms = float(np.sqrt(np.average(signed ** 2, weights=weight)))
+        motion = np.abs((moved - centre) @ (rotation - np.eye(3)).T + step[3:]).max()
+        if motion < tolerance_mm:
+            break
+    return RigidAlignment(FrameTransform(matrix, "rigid"), start, done, inlier_rms)
+
+
+def fit_mirror_symmetry(grid: FaceGrid, **align_options) -> FrameTransform:
+    """The reflection across a face's plane of symmetry, in the grid's frame.
+
+    The grid is reflected across the plane x = 0 of its frame (its left and right
+    landmarks swapped) and aligned rigidly onto the unreflected grid with
+    :func:`align_rigid` (landmarks, then ICP on the surface); the reflection followed
+    by that rigid map sends each point of the face near its mirror image. The result is
+    projected onto the nearest exact plane reflection, so applying it twice is the
+    identity.
+
+    Parameters
+    ----------
+    grid : FaceGrid
+        A face with landmarks; x should run roughly from one side of the face to the
+        other (true of scans and of normalised faces).
+    **align_options
+        Passed to :func:`align_rigid` (here by default every 5th row and column, and a
+        stop at 0.01 mm of motion: within 0.1 mm of the converged plane, in half the
+        time).
+
+    Returns
+    -------
+    FrameTransform
+        The reflection (``method == "mirror"``, determinant -1).
+
+    Raises
+    ------
+    ValueError
+        Fewer than three landmarks whose mirror partners are present.
+    """
+    flip = np.diag([-1.0, 1.0, 1.0])
+    swap = list(MIRROR_LANDMARK)
+    mirrored = replace(grid, points=grid.points @ flip, landmarks=(grid.landmarks @ flip)[swap],
+                       landmark_vertices=grid.landmark_vertices[swap])
+    align_options = {"sample_step": 5, "tolerance_mm": 0.01, **align_options}
+    rigid = align_rigid(mirrored, grid, **align_options).transform.matrix
+    linear = rigid[:3, :3] @ flip
+    # the nearest plane reflection I - 2 n n^T: n is the eigenvector of the linear
+    # part's symmetric half with the most negative eigenvalue; the plane n.x = d is the
+    # set of midpoints between points and their images
+    _, vectors = np.linalg.eigh(0.5 * (linear + linear.T))
+    normal = vectors[:, 0]
+    offset = 0.5 * float(normal @ rigid[:3, 3])
+    matrix = np.eye(4)
+    matrix[:3, :3] = np.eye(3) - 2.0 * np.outer(normal, normal)
+    matrix[:3, 3] = 2.0 * offset * normal
+    return FrameTransform(matrix, "mirror")

@@ -1,0 +1,387 @@
+"""Texture tracking: where the skin of a neutral scan went in the expressive scan, from
+the scans' colour images.
+
+The geometry of two scans shows how the skin moves across the surface only where the
+surface has shape (lips, nose, brows); on a smooth cheek or forehead it cannot say how
+far the skin slid. The skin's pattern (pores, freckles, moles, mottling, brows) moves
+with the skin, so the colour images can: this stage tracks the pattern with dense
+optical flow and lifts the flow to 3D correspondences, which the dense registration
+(:func:`tpscore.motion.register_surfaces`) weighs next to the geometry.
+
+1. **One image plane.** Both scans are already in one frame (the expressive scan
+   aligned rigidly onto the neutral one). Each is rendered into the same orthographic
+   image plane along the viewing axis, through the z-buffered triangles of its own
+   grid, sampling its full-resolution colour image at the interpolated u,v: both images
+   then have the same pixels, holes, eye openings and background, whatever the pose of
+   the head in each scan.
+2. **No shading.** The light is fixed in the scanner while the head turns and the skin
+   bends, so shading differs between the scans. The grey levels minus their local mean
+   (a Gaussian of ``shading_sigma_mm``), divided by their local contrast, keep the
+   skin's pattern and drop shading, exposure and white balance.
+3. **Flow.** OpenCV's DIS optical flow (Kroeger et al. 2016) from the neutral to the
+   expressive image and back.
+4. **Confidence.** A match is kept where the flow is consistent (forward then
+   backward returns within ``consistency_px``), starts and lands on the surface away
+   from its rims, and is weighted by the strength of the texture under it (the smaller
+   eigenvalue of the local structure tensor): flat skin without a pattern says little.
+5. **Lifting.** The landing pixel's 3D point on the expressive scan is the match of the
+   neutral vertex under the starting pixel.
+
+Measured in ``benchmarks/FIDELITY.md`` (texture section).
+"""
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import cv2
+
+from .._validation import as_positive
+from ..face.image import bilinear, grey_levels
+from ..face.grid import FaceGrid
+from ..raster import interpolate_pixels, rasterise
+
+__all__ = ["TextureOptions", "TextureMatches", "TextureWarning", "track_texture", "render_texture",
+           "TexturePlane"]
+
+
+class TextureWarning(UserWarning):
+    """The colour images cannot be used; the motion comes from the geometry alone."""
+
+
+@dataclass(frozen=True)
+class TextureOptions:
+    """Settings of texture tracking (:func:`track_texture`).
+
+    Attributes
+    ----------
+    shading_sigma_mm : float
+        Width of the local mean removed from the grey levels (shading varies over
+        centimetres, the skin's pattern over millimetres).
+    consistency_px : float
+        Largest forward-backward flow error of a kept match, in image-plane pixels.
+    rim_px : int
+        Matches must start and land at least this many pixels inside the surface.
+    min_matched_fraction : float
+        Below this share of consistent matches among the valid vertices the flow has
+        failed (another person's scan, a texture it cannot follow): texture is not used.
+    """
+
+    shading_sigma_mm: float = 2.0
+    consistency_px: float = 0.5
+    rim_px: int = 2
+    min_matched_fraction: float = 0.25
+
+    def __post_init__(self):
+        as_positive(self.shading_sigma_mm, "shading_sigma_mm")
+        as_positive(self.consistency_px, "consistency_px")
+        if int(self.rim_px) != self.rim_px or self.rim_px < 0:
+            raise ValueError(f"rim_px must be an integer >= 0, got {self.rim_px!r}")
+        if not 0 <= self.min_matched_fraction < 1:
+            raise ValueError(f"min_matched_fraction must be in [0, 1), got {self.min_matched_fraction!r}")
+
+
+@dataclass(frozen=True)
+class TexturePlane:
+    """An orthographic image plane over x, y: pixel (r, c) has its centre at
+    x = x0 + (c + 0.5) pixel_mm, y = y_top - (r + 0.5) pixel_mm."""
+
+    x0: float
+    y_top: float
+    pixel_mm: float
+    width: int
+    height: int
+
+    @classmethod
+    def covering(cls, points, pixel_mm: float, margin_mm: float = 2.0) -> "TexturePlane":
+        """The plane over the x, y extent of (n, 3) points, with a margin."""
+        lower = points[:, :2].min(axis=0) - margin_mm
+        upper = points[:, :2].max(axis=0) + margin_mm
+        width, height = (np.ceil((upper - lower) / pixel_mm).astype(int) + 1).tolist()
+        return cls(float(lower[0]), float(upper[1]), float(pixel_mm), width, height)
+
+    def pixels(self, points) -> np.ndarray:
+        """(n, 2) continuous pixel positions (x along columns, y along rows; pixel
+        centres at integers) of (n, >=2) points."""
+        points = np.asarray(points, dtype=np.float64)
+        return np.column_stack([(points[:, 0] - self.x0) / self.pixel_mm - 0.5,
+                                (self.y_top - points[:, 1]) / self.pixel_mm - 0.5])
+
+
+@dataclass
+class TextureView:
+    """A face's colour and surface as seen in a :class:`TexturePlane`."""
+
+    grey: np.ndarray       # (h, w) float32 grey levels, 0 where nothing is seen
+    points: np.ndarray     # (h, w, 3) surface point under each pixel, NaN where none
+    valid: np.ndarray      # (h, w) bool
+    triangle: np.ndarray = None      # (h, w) the grid mesh's triangle under each pixel
+    barycentric: np.ndarray = None   # (h, w, 3) the pixel centre's weights on it
+
+
+def render_texture(grid: FaceGrid, plane: TexturePlane) -> TextureView:
+    """Render a face grid's colour image into an image plane through its triangles."""
+
+    if grid.image is None:
+        raise ValueError("the face grid has no colour image")
+    mesh = grid.mesh()
+    pixels = plane.pixels(mesh.vertices) + 0.5      # the rasteriser's centres are at +0.5
+    triangle, barycentric = rasterise(pixels, mesh.vertices[:, 2], mesh.faces, plane.width, plane.height)
+    # each pixel's surface point and its position in the colour image
+    image_pixels = mesh.uv * np.array(grid.image.shape[1::-1], dtype=np.float64) - 0.5
+    seen = interpolate_pixels(np.column_stack([mesh.vertices, image_pixels]), mesh.faces, triangle, barycentric)
+    covered = triangle >= 0
+    where = np.where(covered[..., None], seen[..., 3:], -1.0).astype(np.float32)
+    grey = cv2.remap(grey_levels(grid.image), where[..., 0], where[..., 1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE)
+    grey[~covered] = 0.0
+    return TextureView(grey, seen[..., :3], covered, triangle, barycentric)
+
+
+@dataclass
+class TextureMatches:
+    """Where the skin under each vertex of a neutral grid went in the expressive scan.
+
+    Attributes
+    ----------
+    targets : (H, W, 3) ndarray
+        The matched point on the expressive surface (NaN where there is no match).
+    confidence : (H, W) ndarray
+        Weight of each match in [0, 1] (0 where there is none).
+    matched_fraction : float
+        Share of the grid's valid vertices with a match.
+    seconds : float
+        Time taken (rendering, flow, lifting).
+    """
+
+    targets: np.ndarray
+    confidence: np.ndarray
+    matched_fraction: float
+    seconds: float
+    _tracker: "_Tracker | None" = field(default=None, repr=False)
+
+    def refined(self, displacement) -> "TextureMatches":
+        """The matches found again with the expressive image warped back by a motion
+        estimate, so that the flow only has to find what the estimate missed (large,
+        deforming motions fail the consistency check when the flow must find them alone).
+
+        Parameters
+        ----------
+        displacement : (H, W, 3) array_like
+            The estimated motion of each vertex of the neutral grid (mm; NaN where
+            unknown).
+
+        Returns
+        -------
+        TextureMatches; these matches unchanged when the refined flow fails its check.
+        """
+        if self._tracker is None:
+            raise ValueError("these matches were not made by track_texture and cannot be refined")
+        start = time.perf_counter()
+        refined = self._tracker.match(np.asarray(displacement, dtype=np.float64))
+        if refined is None:
+            return self
+        refined.seconds = time.perf_counter() - start
+        return refined
+
+
+def _image_pixel_mm(grid: FaceGrid) -> float:
+    """The size of one colour-image pixel on the face (mm), from the affine map of the
+    valid vertices' x, y to their image pixels."""
+    xy = grid.points[grid.mask][:, :2]
+    pixels = grid.uv[grid.mask] * np.array(grid.image.shape[1::-1], dtype=np.float64)
+    design = np.column_stack([xy - xy.mean(axis=0), np.ones(len(xy))])
+    solution, *_ = np.linalg.lstsq(design, pixels, rcond=None)
+    return float(1.0 / np.sqrt(abs(np.linalg.det(solution[:2]))))
+
+
+def _detail_rms(view: TextureView, sigma_px: float) -> float:
+    """RMS of the grey levels minus their local mean over the surface: the strength of
+    the image's pattern in grey levels (0 for a flat image)."""
+
+    valid = view.valid.astype(np.float32)
+    grey = np.where(view.valid, view.grey, 0.0).astype(np.float32)
+    mean = cv2.GaussianBlur(grey, (0, 0), sigma_px) / np.maximum(cv2.GaussianBlur(valid, (0, 0), sigma_px), 1e-3)
+    detail = (grey - mean)[view.valid]
+    return float(np.sqrt(np.mean(detail * detail))) if detail.size else 0.0
+
+
+def _pattern(view: TextureView, sigma_px: float) -> np.ndarray:
+    """The skin's pattern: grey levels minus their local mean over the surface, over
+    their local rms contrast (shading, exposure and white balance drop out)."""
+
+    valid = view.valid.astype(np.float32)
+    grey = np.where(view.valid, view.grey, 0.0).astype(np.float32)
+
+    def local_mean(image, sigma):
+        return cv2.GaussianBlur(image, (0, 0), sigma) / np.maximum(cv2.GaussianBlur(valid, (0, 0), sigma), 1e-3)
+
+    detail = np.where(view.valid, grey - local_mean(grey, sigma_px), 0.0).astype(np.float32)
+    # the contrast varies over centimetres: estimate it on a quarter-resolution image
+    height, width = detail.shape
+    small = (max(width // 4, 1), max(height // 4, 1))
+    energy = cv2.resize(detail * detail, small, interpolation=cv2.INTER_AREA)
+    weight = cv2.resize(valid, small, interpolation=cv2.INTER_AREA)
+    energy = cv2.GaussianBlur(energy, (0, 0), sigma_px) / np.maximum(cv2.GaussianBlur(weight, (0, 0), sigma_px), 1e-3)
+    contrast = np.sqrt(np.maximum(cv2.resize(energy, (width, height), interpolation=cv2.INTER_LINEAR), 1e-6))
+    return np.where(view.valid, detail / contrast, 0.0).astype(np.float32)
+
+
+def _eight_bit(pattern: np.ndarray) -> np.ndarray:
+    # DIS works on 8-bit images; +-4 local standard deviations span the range
+    return np.clip(128.0 + 32.0 * pattern, 0, 255).astype(np.uint8)
+
+
+# Below this rms of detail (grey levels) an image holds nothing but 8-bit rounding and
+# sensor noise: a flat or blurred image has no pattern to follow.
+_MIN_DETAIL_GREY = 0.5
+# The structure tensor's window (mm): about the flow's patch on the face.
+_STRENGTH_WINDOW_MM = 1.4
+# The texture strength at which a match gets half its weight.
+_STRENGTH_HALF = 0.005
+
+
+def _texture_strength(pattern: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Smaller eigenvalue of the pattern's structure tensor over a Gaussian window: how
+    firmly the texture pins a patch down in its weakest direction."""
+
+    gx = cv2.Sobel(pattern, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(pattern, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    jxx = cv2.GaussianBlur(gx * gx, (0, 0), sigma_px)
+    jyy = cv2.GaussianBlur(gy * gy, (0, 0), sigma_px)
+    jxy = cv2.GaussianBlur(gx * gy, (0, 0), sigma_px)
+    return 0.5 * (jxx + jyy - np.sqrt((jxx - jyy) ** 2 + 4.0 * jxy ** 2))
+
+
+def _inside(valid: np.ndarray, rim_px: int) -> np.ndarray:
+
+    if rim_px == 0:
+        return valid
+    kernel = np.ones((2 * rim_px + 1, 2 * rim_px + 1), np.uint8)
+    return cv2.erode(valid.astype(np.uint8), kernel) > 0
+
+
+class _Tracker:
+    """The two scans' views and patterns in one plane, ready to be matched (again)."""
+
+    def __init__(self, neutral: FaceGrid, plane: TexturePlane, views, patterns, pixel_mm: float,
+                 options: TextureOptions):
+        self.neutral, self.plane, self.views, self.options = neutral, plane, views, options
+        self.neutral_pattern = _eight_bit(patterns[0])
+        self.expressive_pattern = patterns[1]
+        self.expressive_inside = _inside(views[1].valid, options.rim_px).astype(np.float32)
+        self.valid = neutral.mask.reshape(-1)
+        self.begin = plane.pixels(neutral.points.reshape(-1, 3)[self.valid])
+        inside = _inside(views[0].valid, options.rim_px).astype(np.float32)
+        self.begin_inside = bilinear(inside, self.begin[:, 0], self.begin[:, 1]) > 0.999
+        strength = bilinear(_texture_strength(patterns[0], _STRENGTH_WINDOW_MM / pixel_mm),
+                            self.begin[:, 0], self.begin[:, 1])
+        # a pattern of unit local contrast has strength ~0.02 where it is textured in both
+        # directions; flat skin tends to 0
+        self.strength_weight = strength / (strength + _STRENGTH_HALF)
+
+    def _warp(self, displacement: np.ndarray) -> np.ndarray:
+        """(h, w, 2) float32 pixel positions where each neutral pixel's skin is expected
+        in the expressive image: its surface point moved by the per-vertex displacement
+        (interpolated over the neutral grid's triangles; identity off the surface)."""
+        view = self.views[0]
+        mesh_index = np.flatnonzero(self.valid)
+        moved = interpolate_pixels(np.nan_to_num(displacement.reshape(-1, 3)[mesh_index]),
+                                   self.neutral.mesh().faces, view.triangle, view.barycentric)
+        rows, cols = np.mgrid[0:self.plane.height, 0:self.plane.width].astype(np.float32)
+        where = np.stack([cols, rows], axis=-1)
+        seen = view.valid
+        where[seen] = self.plane.pixels(view.points[seen] + moved[seen]).astype(np.float32)
+        return where
+
+    def match(self, displacement=None) -> TextureMatches | None:
+        """Flow both ways and lift the consistent matches; None when too few are."""
+
+        start = time.perf_counter()
+        expressive, inside = self.expressive_pattern, self.expressive_inside
+        warp = None
+        if displacement is not None:
+            warp = self._warp(displacement)
+            expressive = cv2.remap(expressive, warp, None, cv2.INTER_LINEAR, borderValue=0)
+            inside = cv2.remap(inside, warp, None, cv2.INTER_LINEAR, borderValue=0)
+        flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        expressive = _eight_bit(expressive)
+        forward = flow.calc(self.neutral_pattern, expressive, None)
+        backward = flow.calc(expressive, self.neutral_pattern, None)
+        step = bilinear(forward, self.begin[:, 0], self.begin[:, 1])
+        land = self.begin + step
+        back = bilinear(backward, land[:, 0], land[:, 1])
+        consistency = np.linalg.norm(step + back, axis=1)
+        matched = (consistency < self.options.consistency_px) & self.begin_inside \
+            & (bilinear(inside, land[:, 0], land[:, 1]) > 0.999)
+        matched_fraction = float(matched.mean()) if len(matched) else 0.0
+        if matched_fraction < self.options.min_matched_fraction:
+            return None
+        if warp is not None:
+            land = bilinear(warp, land[:, 0], land[:, 1]).astype(np.float64)
+        landed = bilinear(np.nan_to_num(self.views[1].points), land[:, 0], land[:, 1])
+        shape = self.neutral.points.shape
+        targets = np.full((self.valid.size, 3), np.nan)
+        targets[np.flatnonzero(self.valid)[matched]] = landed[matched]
+        confidence = np.zeros(self.valid.shape)
+        confidence[self.valid] = np.where(matched, self.strength_weight, 0.0)
+        return TextureMatches(targets.reshape(shape), confidence.reshape(shape[:2]), matched_fraction,
+                              time.perf_counter() - start, self)
+
+
+def track_texture(neutral: FaceGrid, expressive: FaceGrid,
+                  options: TextureOptions = TextureOptions()) -> TextureMatches | None:
+    """Match each vertex of a neutral grid to the expressive scan by its skin texture.
+
+    Parameters
+    ----------
+    neutral, expressive : FaceGrid
+        Two scans of one person in one frame (the expressive one aligned rigidly onto the
+        neutral one), each with its colour image.
+    options : TextureOptions
+
+    Returns
+    -------
+    TextureMatches, or None with a :class:`TextureWarning` saying why when the images
+    cannot be used (a grid without an image, an image too dark or without texture, or a
+    flow that fails its consistency check on most of the face).
+    """
+    start = time.perf_counter()
+    for name, grid in (("neutral", neutral), ("expressive", expressive)):
+        if grid.image is None:
+            warnings.warn(f"the {name} scan has no colour image: the motion comes from the "
+                          "geometry alone", TextureWarning, stacklevel=2)
+            return None
+    pixel_mm = _image_pixel_mm(neutral)
+    valid_points = neutral.points[neutral.mask]
+    # a plane as fine as the neutral image, but never finer than 0.1 mm nor more than
+    # 2,048 pixels across, which bounds the flow's time on denser cameras
+    extent = np.ptp(valid_points[:, :2], axis=0).max()
+    pixel_mm = max(pixel_mm, 0.1, extent / 2048.0)
+    plane = TexturePlane.covering(valid_points, pixel_mm)
+    views = [render_texture(grid, plane) for grid in (neutral, expressive)]
+    for name, view in zip(("neutral", "expressive"), views):
+        brightness = float(np.median(view.grey[view.valid])) if view.valid.any() else 0.0
+        if brightness < 8.0:
+            warnings.warn(f"the {name} scan's colour image is too dark (median grey {brightness:.1f} of "
+                          "255): the motion comes from the geometry alone", TextureWarning, stacklevel=2)
+            return None
+    sigma_px = options.shading_sigma_mm / pixel_mm
+    for name, view in zip(("neutral", "expressive"), views):
+        detail = _detail_rms(view, sigma_px)
+        if detail < _MIN_DETAIL_GREY:
+            warnings.warn(f"the {name} scan's colour image shows no texture (detail of {detail:.2f} grey "
+                          f"levels rms, at least {_MIN_DETAIL_GREY} needed): the motion comes from the "
+                          "geometry alone", TextureWarning, stacklevel=2)
+            return None
+    tracker = _Tracker(neutral, plane, views, [_pattern(view, sigma_px) for view in views], pixel_mm, options)
+    matches = tracker.match()
+    if matches is None:
+        warnings.warn(f"texture tracking matched less than {100 * options.min_matched_fraction:.0f} % of the "
+                      "face (the flow failed its consistency check): the motion comes from the geometry "
+                      "alone", TextureWarning, stacklevel=2)
+        return None
+    matches.seconds = time.perf_counter() - start
+    return matches

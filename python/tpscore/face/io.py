@@ -1,0 +1,796 @@
+"""Reading and writing scans, landmarks and meshes.
+
+Formats:
+
+- Bosphorus ``.bnt`` depth scans (:func:`read_bnt`, :func:`write_bnt`);
+- Bosphorus ``.lm3`` landmark files (:func:`read_lm3`, :func:`write_lm3`), and
+  landmarks as ``.csv`` or ``.json`` (:func:`read_landmarks`, :func:`write_landmarks`);
+- meshes and point clouds through trimesh (:func:`read_mesh`), and OBJ / PLY meshes
+  with a u,v map and vertex colours (:func:`write_mesh`).
+
+Landmarks are always a (22, 3) float64 array in Bosphorus order (see
+:mod:`tpscore.face.landmarks`) with NaN rows for the ones that are missing. Every reader
+raises ValueError naming the file and what is wrong with it; every writer writes to
+a temporary file beside the target and renames it, so nothing is left half-written.
+Units are millimetres.
+"""
+from __future__ import annotations
+
+import csv
+import io as _stdio
+import json
+import math
+import os
+import struct
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from .._validation import as_faces, as_points
+from .landmarks import LANDMARK_NAMES, N_LANDMARKS, as_landmarks, empty_landmarks, landmark_index
+
+__all__ = [
+    "BntScan",
+    "write_npz",
+    "read_bnt",
+    "write_bnt",
+    "read_lm3",
+    "write_lm3",
+    "read_landmarks",
+    "write_landmarks",
+    "read_mesh",
+    "write_mesh",
+    "read_image",
+]
+
+#: Largest colour image read, in pixels: far beyond a face scanner's camera, and a guard
+#: against a small compressed file that would decompress into gigabytes.
+MAX_IMAGE_PIXELS = 64_000_000
+
+# The background / hole marker that Bosphorus scanners (and make_scans.py) write.
+DEFAULT_BNT_ZMIN = -1.0e9
+
+# .bnt header: uint16 nrows, uint16 ncols, float64 zmin, uint16 name length.
+_BNT_HEAD = struct.Struct("<HHdH")
+_BNT_LEN2 = struct.Struct("<I")
+
+
+# --------------------------------------------------------------------------- helpers
+
+def _atomic_write(path, data: bytes) -> None:
+    """Write `data` to `path` through a temporary file in the same folder, then rename.
+
+    The rename is atomic on POSIX and Windows, so a reader never sees a partial file
+    and an interrupted write leaves the previous file (if any) untouched.
+    """
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise ValueError(f"cannot write {str(path)!r}: folder {str(folder)!r} does not exist")
+    handle, tmp_name = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(handle, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp_name, path)
+    except BaseException:
+        try:
+            os.unlink(tmp_name)
+        except OSError:
+            pass
+        raise
+
+
+def _read_bytes(path) -> bytes:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read()
+    except FileNotFoundError:
+        raise ValueError(f"{str(path)!r}: file not found") from None
+    except IsADirectoryError:
+        raise ValueError(f"{str(path)!r}: is a folder, not a file") from None
+    except OSError as exc:
+        raise ValueError(f"{str(path)!r}: cannot be read ({exc.strerror or exc})") from None
+
+
+def _read_text(path) -> list[str]:
+    """Lines of a text file, without line endings (accepts \\n, \\r\\n and \\r)."""
+    raw = _read_bytes(path)
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{str(path)!r}: not a UTF-8 text file (byte {exc.start})") from None
+    return text.splitlines()
+
+
+def _format_float(value: float) -> str:
+    # repr gives the shortest text that reads back to the same float.
+    return repr(float(value))
+
+
+# --------------------------------------------------------------------------- images
+
+def read_image(path) -> np.ndarray:
+    """Read a colour image (PNG, JPEG, BMP, TIFF: what Pillow reads) as (h, w, 3) uint8.
+
+    Grey and palette images are expanded to RGB; an alpha channel is dropped.
+
+    Raises
+    ------
+    ValueError
+        Naming the file: missing, a folder, not an image, truncated or corrupt, or
+        larger than :data:`MAX_IMAGE_PIXELS`.
+    """
+
+    where = repr(str(path))
+    if not os.path.exists(path):
+        raise ValueError(f"{where}: image file not found")
+    if os.path.isdir(path):
+        raise ValueError(f"{where}: is a folder, not an image file")
+    try:
+        with Image.open(path) as opened:
+            width, height = opened.size
+            if width * height > MAX_IMAGE_PIXELS:
+                raise ValueError(f"{where}: image of {width} x {height} pixels is larger than the "
+                                 f"{MAX_IMAGE_PIXELS:,} pixels tpscore reads")
+            if min(width, height) < 2:
+                raise ValueError(f"{where}: image of {width} x {height} pixels is too small")
+            rgb = np.asarray(opened.convert("RGB"), dtype=np.uint8)
+    except UnidentifiedImageError:
+        raise ValueError(f"{where}: not an image file Pillow can read") from None
+    except (OSError, SyntaxError, Image.DecompressionBombError) as exc:
+        raise ValueError(f"{where}: truncated or corrupt image ({exc})") from None
+    return rgb
+
+
+# --------------------------------------------------------------------------- .bnt
+
+# eq=False: element-wise array comparison has no single truth value.
+@dataclass(eq=False)
+class BntScan:
+    """A Bosphorus depth scan: a grid of nrows x ncols points, row 0 the top.
+
+    Attributes
+    ----------
+    nrows, ncols : int
+        Grid size.
+    zmin : float
+        The marker value the file uses for background and holes.
+    image_name : str
+        Name of the texture image the u,v coordinates refer to.
+    points : (nrows, ncols, 3) float64
+        x, y, z in mm; NaN where the scan has no point (background or hole).
+    uv : (nrows, ncols, 2) float64
+        Normalised image coordinates, as stored (also at invalid points).
+    valid : (nrows, ncols) bool
+        Where the scan has a point.
+    """
+
+    nrows: int
+    ncols: int
+    zmin: float
+    image_name: str
+    points: np.ndarray
+    uv: np.ndarray
+    valid: np.ndarray
+
+    @classmethod
+    def from_points(cls, points, *, image_name: str = "", zmin: float = DEFAULT_BNT_ZMIN) -> "BntScan":
+        """A scan from (nrows, ncols, 3) points with NaN at background and holes; u, v are
+        the pixel centres ((c + 0.5) / ncols, (r + 0.5) / nrows)."""
+        points = np.array(points, dtype=np.float64)
+        if points.ndim != 3 or points.shape[2] != 3:
+            raise ValueError(f"points must have shape (nrows, ncols, 3), got {points.shape}")
+        nrows, ncols = points.shape[:2]
+        valid = np.isfinite(points).all(axis=2)
+        points[~valid] = np.nan
+        rows, cols = np.mgrid[0:nrows, 0:ncols]
+        uv = np.stack([(cols + 0.5) / ncols, (rows + 0.5) / nrows], axis=-1)
+        return cls(nrows, ncols, float(zmin), image_name, points, uv, valid)
+
+    @property
+    def n_valid(self) -> int:
+        """Number of valid points."""
+        return int(np.count_nonzero(self.valid))
+
+    def valid_points(self) -> np.ndarray:
+        """The valid points, (n_valid, 3), in row-major pixel order."""
+        return self.points[self.valid]
+
+
+def read_bnt(path) -> BntScan:
+    """Read a Bosphorus ``.bnt`` depth scan.
+
+    Layout (little-endian): uint16 nrows; uint16 ncols; float64 zmin; uint16 len;
+    len bytes of image name; uint32 len2 (= 5 nrows ncols); len2 float64 values,
+    column after column (all x, all y, all z, all u, all v). Point ``i = r*ncols + c``,
+    row 0 the top. A point with x, y or z equal to zmin is background or a hole.
+
+    Parameters
+    ----------
+    path : str or PathLike
+
+    Returns
+    -------
+    BntScan
+
+    Raises
+    ------
+    ValueError
+        Naming the file and the problem: missing file, truncated header or data,
+        len2 != 5 nrows ncols, zero rows or columns, trailing bytes, a non-ASCII
+        image name, non-finite zmin, or NaN/infinite values at valid points.
+    """
+    raw = _read_bytes(path)
+    where = repr(str(path))
+    size = len(raw)
+    if size < _BNT_HEAD.size:
+        raise ValueError(
+            f"{where}: truncated .bnt header ({size} bytes; the fixed header needs {_BNT_HEAD.size})"
+        )
+    nrows, ncols, zmin, name_len = _BNT_HEAD.unpack_from(raw, 0)
+    if nrows == 0 or ncols == 0:
+        raise ValueError(f"{where}: .bnt grid of {nrows} x {ncols} points is empty")
+    if not math.isfinite(zmin):
+        raise ValueError(f"{where}: .bnt background marker zmin is {zmin}, not a finite number")
+    name_end = _BNT_HEAD.size + name_len
+    data_start = name_end + _BNT_LEN2.size
+    if size < data_start:
+        raise ValueError(
+            f"{where}: truncated .bnt header: image name of {name_len} bytes and the value "
+            f"count need {data_start} bytes, the file has {size}"
+        )
+    name_bytes = raw[_BNT_HEAD.size:name_end]
+    if not all(32 <= b < 127 for b in name_bytes):
+        raise ValueError(
+            f"{where}: .bnt image name is not printable ASCII ({name_bytes[:40]!r}); "
+            "the header is corrupt or this is not a .bnt file"
+        )
+    (len2,) = _BNT_LEN2.unpack_from(raw, name_end)
+    n_points = nrows * ncols
+    if len2 != 5 * n_points:
+        raise ValueError(
+            f"{where}: .bnt value count len2 = {len2} is not 5 * nrows * ncols = "
+            f"5 * {nrows} * {ncols} = {5 * n_points}"
+        )
+    expected = data_start + 8 * len2
+    if size < expected:
+        raise ValueError(
+            f"{where}: truncated .bnt data: {nrows} x {ncols} points need {expected} bytes, "
+            f"the file has {size}"
+        )
+    if size > expected:
+        raise ValueError(
+            f"{where}: {size - expected} trailing bytes after the {nrows} x {ncols} .bnt points"
+        )
+    values = np.frombuffer(raw, dtype="<f8", count=len2, offset=data_start)
+    columns = values.reshape(5, nrows, ncols)  # x, y, z, u, v: one block each
+    xyz = columns[:3]
+    valid = ~((xyz == zmin).any(axis=0))
+    points = np.empty((nrows, ncols, 3))
+    for axis in range(3):
+        points[..., axis] = np.where(valid, xyz[axis], np.nan)
+    uv = np.stack([columns[3], columns[4]], axis=-1).astype(np.float64)
+    finite_valid = np.isfinite(points).all(axis=2) & np.isfinite(uv).all(axis=2)
+    bad = valid & ~finite_valid
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        raise ValueError(
+            f"{where}: {int(bad.sum())} valid point(s) have NaN or infinite x, y, z, u or v "
+            f"(first at row {r}, column {c})"
+        )
+    return BntScan(
+        nrows=int(nrows), ncols=int(ncols), zmin=float(zmin),
+        image_name=name_bytes.decode("ascii"), points=points, uv=uv, valid=valid,
+    )
+
+
+def write_bnt(path, scan: BntScan) -> None:
+    """Write a :class:`BntScan` as a Bosphorus ``.bnt`` file.
+
+    Invalid points (``~scan.valid``) are written with x = y = z = ``scan.zmin``;
+    u, v are written as stored. A file read with :func:`read_bnt` whose invalid points
+    carry zmin in all three coordinates is written back byte for byte.
+
+    Raises
+    ------
+    ValueError
+        If the grid is empty or larger than the format holds (65535 rows or columns),
+        the arrays disagree in shape, valid points are not finite, zmin is not finite
+        or a valid coordinate equals it, or the image name is not printable ASCII.
+    """
+    nrows, ncols = int(scan.nrows), int(scan.ncols)
+    if not (0 < nrows <= 0xFFFF and 0 < ncols <= 0xFFFF):
+        raise ValueError(f"scan grid {nrows} x {ncols} does not fit a .bnt (1..65535 each)")
+    points = np.asarray(scan.points, dtype=np.float64)
+    uv = np.asarray(scan.uv, dtype=np.float64)
+    valid = np.asarray(scan.valid, dtype=bool)
+    if points.shape != (nrows, ncols, 3) or uv.shape != (nrows, ncols, 2) or valid.shape != (nrows, ncols):
+        raise ValueError(
+            f"scan arrays must have shapes points ({nrows}, {ncols}, 3), uv ({nrows}, {ncols}, 2), "
+            f"valid ({nrows}, {ncols}); got {points.shape}, {uv.shape}, {valid.shape}"
+        )
+    zmin = float(scan.zmin)
+    if not math.isfinite(zmin):
+        raise ValueError(f"scan.zmin must be finite, got {zmin}")
+    inside = points[valid]
+    if not np.isfinite(inside).all() or not np.isfinite(uv[valid]).all():
+        raise ValueError("scan.points or scan.uv has NaN or infinite values at valid points")
+    if (inside == zmin).any():
+        raise ValueError(f"a valid point of the scan has a coordinate equal to zmin = {zmin}")
+    try:
+        name = str(scan.image_name).encode("ascii")
+    except UnicodeEncodeError:
+        raise ValueError(f"scan.image_name {scan.image_name!r} is not ASCII") from None
+    if len(name) > 0xFFFF or not all(32 <= b < 127 for b in name):
+        raise ValueError(f"scan.image_name {scan.image_name!r} is not printable ASCII of <= 65535 bytes")
+    blocks = np.empty((5, nrows, ncols), dtype="<f8")
+    for axis in range(3):
+        blocks[axis] = np.where(valid, points[..., axis], zmin)
+    blocks[3] = uv[..., 0]
+    blocks[4] = uv[..., 1]
+    header = _BNT_HEAD.pack(nrows, ncols, zmin, len(name)) + name + _BNT_LEN2.pack(blocks.size)
+    _atomic_write(path, header + blocks.tobytes())
+
+
+# --------------------------------------------------------------------------- .lm3
+
+def read_lm3(path, *, return_names: bool = False):
+    """Read a Bosphorus ``.lm3`` landmark file.
+
+    Format: a header line; an empty line (or a line ``*`` followed by free text up to
+    an empty line); ``<N> landmarks:``; then N pairs of lines: the name, ``x y z``.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    return_names : bool
+        Also return the landmark names as found in the file, in file order.
+
+    Returns
+    -------
+    landmarks : (22, 3) float64
+        In Bosphorus order, NaN rows for landmarks the file does not list.
+    names : list of str
+        Only with ``return_names=True``.
+
+    Raises
+    ------
+    ValueError
+        Naming the file and line: missing header, bad count line, unknown or duplicate
+        landmark name, fewer or more landmarks than announced, unparsable or
+        non-finite coordinates.
+    """
+    lines = [line.rstrip() for line in _read_text(path)]
+    where = repr(str(path))
+
+    def fail(line_index: int, problem: str):
+        raise ValueError(f"{where}, line {line_index + 1}: {problem}")
+
+    if not lines:
+        raise ValueError(f"{where}: empty .lm3 file")
+    # Line 0 is the header. Then an empty line, or a '*' comment block up to an empty line.
+    k = 1
+    if k < len(lines) and lines[k].strip() == "*":
+        k += 1
+        while k < len(lines) and lines[k].strip():
+            k += 1
+    if k >= len(lines) or lines[k].strip():
+        fail(min(k, len(lines) - 1), "expected an empty line after the .lm3 header")
+    k += 1
+    if k >= len(lines):
+        raise ValueError(f"{where}: .lm3 file ends before the '<N> landmarks:' line")
+    count_words = lines[k].split()
+    if len(count_words) != 2 or count_words[1].lower() != "landmarks:" or not count_words[0].isdigit():
+        fail(k, f"expected '<N> landmarks:', got {lines[k]!r}")
+    count = int(count_words[0])
+    if count > N_LANDMARKS:
+        fail(k, f"announces {count} landmarks; Bosphorus has {N_LANDMARKS}")
+    k += 1
+    landmarks = empty_landmarks()
+    names: list[str] = []
+    for _ in range(count):
+        if k + 1 >= len(lines) or not lines[k].strip():
+            raise ValueError(
+                f"{where}: announces {count} landmarks but lists only {len(names)} "
+                f"(ends at line {min(k, len(lines)) + 1})"
+            )
+        name = lines[k].strip()
+        try:
+            index = landmark_index(name)
+        except ValueError:
+            fail(k, f"unknown landmark name {name!r}")
+        if np.isfinite(landmarks[index]).any():
+            fail(k, f"duplicate landmark {name!r}")
+        words = lines[k + 1].split()
+        try:
+            coords = [float(w) for w in words]
+        except ValueError:
+            coords = []
+        if len(coords) != 3:
+            fail(k + 1, f"expected 'x y z' for {name!r}, got {lines[k + 1]!r}")
+        if not all(math.isfinite(v) for v in coords):
+            fail(k + 1, f"non-finite coordinates for {name!r}: {lines[k + 1]!r}")
+        landmarks[index] = coords
+        names.append(LANDMARK_NAMES[index])
+        k += 2
+    rest = [i for i in range(k, len(lines)) if lines[i].strip()]
+    if rest:
+        fail(rest[0], f"more content after the {count} announced landmarks: {lines[rest[0]]!r}")
+    return (landmarks, names) if return_names else landmarks
+
+
+def write_lm3(path, landmarks, *, header: str = "3D landmark points") -> None:
+    """Write landmarks as a Bosphorus ``.lm3`` file.
+
+    Only the finite rows are written, in Bosphorus order; coordinates are written with
+    the shortest text that reads back to the same float.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    landmarks : (22, 3) array-like, mm; NaN rows are missing landmarks.
+    header : str
+        The first line of the file.
+    """
+    array = as_landmarks(landmarks)
+    if "\n" in header or "\r" in header:
+        raise ValueError("header must be a single line")
+    present = np.flatnonzero(np.isfinite(array).all(axis=1))
+    lines = [header, "", f"{len(present)} landmarks:"]
+    for i in present:
+        lines.append(LANDMARK_NAMES[i])
+        lines.append(" ".join(_format_float(v) for v in array[i]))
+    _atomic_write(path, ("\n".join(lines) + "\n").encode("ascii"))
+
+
+# --------------------------------------------------------------------------- CSV / JSON
+
+def _parse_float(text: str) -> float:
+    text = text.strip()
+    if text == "" or text.lower() in ("nan", "null", "none"):
+        return math.nan
+    return float(text)
+
+
+def _read_landmarks_csv(path) -> np.ndarray:
+    where = repr(str(path))
+    rows = list(csv.reader(_stdio.StringIO("\n".join(_read_text(path)))))
+    # A blank line is no row; ",," is a row of empty cells (a missing landmark).
+    numbered = [(i, [cell.strip() for cell in row]) for i, row in enumerate(rows) if row]
+    if not numbered:
+        raise ValueError(f"{where}: no landmarks in the CSV file")
+
+    def is_name(cell: str) -> bool:
+        try:
+            landmark_index(cell)
+            return True
+        except ValueError:
+            return False
+
+    def is_number(cell: str) -> bool:
+        try:
+            _parse_float(cell)
+            return True
+        except ValueError:
+            return False
+
+    first = numbered[0][1]
+    if not is_name(first[0]) and not any(is_number(cell) and cell for cell in first):
+        numbered = numbered[1:]  # a header such as "name,x,y,z" or "x,y,z"
+    if not numbered:
+        raise ValueError(f"{where}: CSV file has a header but no landmarks")
+    landmarks = empty_landmarks()
+    # Rows start with a name unless the first cell is a number (or empty: missing).
+    named = not is_number(numbered[0][1][0])
+    if not named and len(numbered) != N_LANDMARKS:
+        raise ValueError(
+            f"{where}: a CSV of unnamed x,y,z rows must have {N_LANDMARKS} rows in Bosphorus "
+            f"order, got {len(numbered)}"
+        )
+    for position, (line, row) in enumerate(numbered):
+        cells = row[1:] if named else row
+        if named:
+            try:
+                index = landmark_index(row[0])
+            except ValueError:
+                raise ValueError(f"{where}, line {line + 1}: unknown landmark name {row[0]!r}") from None
+            if np.isfinite(landmarks[index]).any():
+                raise ValueError(f"{where}, line {line + 1}: duplicate landmark {row[0]!r}")
+        else:
+            index = position
+        if len(cells) != 3:
+            raise ValueError(f"{where}, line {line + 1}: expected 3 coordinates, got {len(cells)}")
+        try:
+            coords = [_parse_float(cell) for cell in cells]
+        except ValueError:
+            raise ValueError(f"{where}, line {line + 1}: unparsable coordinates {cells}") from None
+        finite = [math.isfinite(v) for v in coords]
+        if any(math.isinf(v) for v in coords) or (any(finite) and not all(finite)):
+            raise ValueError(f"{where}, line {line + 1}: non-finite coordinates {cells}")
+        if named and not all(finite):
+            raise ValueError(f"{where}, line {line + 1}: named landmark {row[0]!r} without coordinates")
+        landmarks[index] = coords
+    return landmarks
+
+
+def _read_landmarks_json(path) -> np.ndarray:
+    where = repr(str(path))
+    try:
+        data = json.loads("\n".join(_read_text(path)))
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{where}, line {exc.lineno}: invalid JSON ({exc.msg})") from None
+    landmarks = empty_landmarks()
+
+    def coords_of(value, label: str) -> list[float]:
+        if (not isinstance(value, (list, tuple)) or len(value) != 3
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
+            raise ValueError(f"{where}: {label} must be [x, y, z] numbers, got {value!r}")
+        if not all(math.isfinite(v) for v in value):
+            raise ValueError(f"{where}: {label} has non-finite coordinates {value!r}")
+        return [float(v) for v in value]
+
+    if isinstance(data, dict):
+        seen: dict[int, str] = {}
+        for name, value in data.items():
+            try:
+                index = landmark_index(name)
+            except ValueError:
+                raise ValueError(f"{where}: unknown landmark name {name!r}") from None
+            if index in seen:
+                raise ValueError(f"{where}: duplicate landmark {name!r} (also as {seen[index]!r})")
+            seen[index] = name
+            if value is not None:
+                landmarks[index] = coords_of(value, f"landmark {name!r}")
+    elif isinstance(data, list):
+        if len(data) != N_LANDMARKS:
+            raise ValueError(
+                f"{where}: a JSON list of landmarks must have {N_LANDMARKS} entries in Bosphorus "
+                f"order, got {len(data)}"
+            )
+        for index, value in enumerate(data):
+            if value is not None:
+                landmarks[index] = coords_of(value, f"entry {index} ({LANDMARK_NAMES[index]})")
+    else:
+        raise ValueError(f"{where}: JSON landmarks must be an object {{name: [x, y, z]}} or a list of 22")
+    return landmarks
+
+
+def read_landmarks(path) -> np.ndarray:
+    """Read 22 landmarks from ``.lm3``, ``.csv`` or ``.json``, chosen by the suffix.
+
+    - ``.lm3``: Bosphorus text format (:func:`read_lm3`).
+    - ``.csv``: rows ``name,x,y,z`` (any subset, any order, optional header), or exactly
+      22 rows ``x,y,z`` in Bosphorus order (optional header; empty or ``nan`` fields
+      mark a missing landmark).
+    - ``.json``: ``{name: [x, y, z] or null}`` or a list of 22 ``[x, y, z]`` or ``null``.
+
+    Names match case-insensitively.
+
+    Returns
+    -------
+    (22, 3) float64, mm, NaN rows for missing landmarks.
+    """
+    suffix = Path(path).suffix.lower()
+    if suffix == ".lm3":
+        return read_lm3(path)
+    if suffix == ".csv":
+        return _read_landmarks_csv(path)
+    if suffix == ".json":
+        return _read_landmarks_json(path)
+    raise ValueError(f"{str(path)!r}: unknown landmark file type {suffix!r} (use .lm3, .csv or .json)")
+
+
+def write_landmarks(path, landmarks) -> None:
+    """Write 22 landmarks as ``.lm3``, ``.csv`` (``name,x,y,z`` with a header) or ``.json``
+    (``{name: [x, y, z]}``), chosen by the suffix. Missing (NaN) landmarks are omitted."""
+    suffix = Path(path).suffix.lower()
+    array = as_landmarks(landmarks)
+    present = np.flatnonzero(np.isfinite(array).all(axis=1))
+    if suffix == ".lm3":
+        write_lm3(path, array)
+    elif suffix == ".csv":
+        lines = ["name,x,y,z"]
+        lines += [",".join([LANDMARK_NAMES[i]] + [_format_float(v) for v in array[i]]) for i in present]
+        _atomic_write(path, ("\n".join(lines) + "\n").encode("ascii"))
+    elif suffix == ".json":
+        data = {LANDMARK_NAMES[i]: [float(v) for v in array[i]] for i in present}
+        _atomic_write(path, (json.dumps(data, indent=1) + "\n").encode("ascii"))
+    else:
+        raise ValueError(f"{str(path)!r}: unknown landmark file type {suffix!r} (use .lm3, .csv or .json)")
+
+
+# --------------------------------------------------------------------------- meshes
+
+def read_mesh(path):
+    """Read a mesh or point cloud with trimesh, keeping the file's vertex order.
+
+    Any format trimesh reads (OBJ, PLY, STL, OFF, GLB, ...). A scene of several
+    geometries is concatenated (with their scene transforms applied).
+
+    Returns
+    -------
+    vertices : (n, 3) float64, mm
+    faces : (m, 3) int64; (0, 3) for a point cloud
+
+    Raises
+    ------
+    ValueError
+        If the file is missing, unreadable, or holds no vertices.
+    """
+    # trimesh takes a third of a second to import; only mesh files need it
+    import trimesh
+
+    where = repr(str(path))
+    if not Path(path).is_file():
+        raise ValueError(f"{where}: file not found")
+    if Path(path).suffix.lower() == ".obj":
+        # trimesh drops OBJ vertices no face uses once texture coordinates are present,
+        # which would break the correspondence with the file's vertex order.
+        return _read_obj(path)
+    try:
+        # process=False keeps the vertex order (no merging); fix_texture=False stops the
+        # PLY reader from splitting vertices along u,v seams.
+        loaded = trimesh.load(str(path), process=False, fix_texture=False)
+    except Exception as exc:  # trimesh raises many types for unreadable input
+        raise ValueError(f"{where}: cannot be read as a mesh or point cloud ({type(exc).__name__}: {exc})") from None
+    if isinstance(loaded, trimesh.Scene):
+        geometries = list(loaded.geometry.values())
+        if not geometries:
+            raise ValueError(f"{where}: the file holds no geometry")
+        loaded = loaded.to_geometry() if hasattr(loaded, "to_geometry") else loaded.dump(concatenate=True)
+    vertices = np.ascontiguousarray(np.asarray(getattr(loaded, "vertices", np.empty((0, 3))), dtype=np.float64))
+    faces = getattr(loaded, "faces", None)
+    faces = np.empty((0, 3), dtype=np.int64) if faces is None else np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
+        raise ValueError(f"{where}: the file holds no vertices")
+    if not np.isfinite(vertices).all():
+        raise ValueError(f"{where}: the file has NaN or infinite vertex coordinates")
+    return vertices, np.ascontiguousarray(faces)
+
+
+def _read_obj(path):
+    """Vertices and triangles of an OBJ file, in file order (polygons split as fans)."""
+    where = repr(str(path))
+    vertices: list[list[float]] = []
+    faces: list[tuple[int, int, int]] = []
+    for number, line in enumerate(_read_text(path), start=1):
+        words = line.split()
+        if not words:
+            continue
+        try:
+            if words[0] == "v":
+                vertices.append([float(w) for w in words[1:4]])
+                if len(vertices[-1]) != 3:
+                    raise ValueError("a vertex needs x y z")
+            elif words[0] == "f":
+                corners = []
+                for word in words[1:]:
+                    index = int(word.split("/")[0])
+                    # OBJ indices are 1-based; negative ones count back from the last vertex.
+                    index = index - 1 if index > 0 else len(vertices) + index
+                    if not 0 <= index < len(vertices):
+                        raise ValueError(f"face refers to vertex {word!r}, which is not defined")
+                    corners.append(index)
+                if len(corners) < 3:
+                    raise ValueError("a face needs at least 3 vertices")
+                faces.extend((corners[0], corners[k], corners[k + 1]) for k in range(1, len(corners) - 1))
+        except ValueError as exc:
+            raise ValueError(f"{where}, line {number}: {exc}") from None
+    if not vertices:
+        raise ValueError(f"{where}: the file holds no vertices")
+    vertices_array = np.array(vertices, dtype=np.float64)
+    if not np.isfinite(vertices_array).all():
+        raise ValueError(f"{where}: the file has NaN or infinite vertex coordinates")
+    faces_array = np.array(faces, dtype=np.int64).reshape(-1, 3)
+    return vertices_array, faces_array
+
+
+def _colors_uint8(vertex_colors, n: int) -> np.ndarray:
+    colors = np.asarray(vertex_colors)
+    if colors.ndim != 2 or colors.shape[0] != n or colors.shape[1] not in (3, 4):
+        raise ValueError(f"vertex_colors must have shape ({n}, 3) or ({n}, 4), got {colors.shape}")
+    if np.issubdtype(colors.dtype, np.floating):
+        if not np.isfinite(colors).all() or colors.min() < 0 or colors.max() > 1:
+            raise ValueError("float vertex_colors must lie in [0, 1]")
+        colors = np.round(colors * 255.0)
+    elif not np.issubdtype(colors.dtype, np.integer) or colors.min() < 0 or colors.max() > 255:
+        raise ValueError("integer vertex_colors must lie in [0, 255]")
+    colors = colors.astype(np.uint8)
+    if colors.shape[1] == 3:
+        colors = np.concatenate([colors, np.full((n, 1), 255, np.uint8)], axis=1)
+    return colors
+
+
+def write_mesh(path, vertices, faces, *, uv=None, vertex_colors=None) -> None:
+    """Write a triangle mesh (or, with no faces, a point cloud) as ``.obj`` or ``.ply``.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        ``.obj`` (text) or ``.ply`` (binary little-endian, float64 coordinates).
+    vertices : (n, 3) array-like, mm, all finite (drop masked vertices first, for
+        example with :meth:`tpscore.face.grid.FaceGrid.mesh`).
+    faces : (m, 3) integer array-like (m may be 0).
+    uv : (n, 2) array-like, optional
+        Per-vertex texture coordinates, written as given: OBJ ``vt`` lines with
+        ``f v/vt`` faces, PLY ``texture_u``/``texture_v`` vertex properties. Viewers take
+        v = 0 at the bottom of the image; pass ``1 - v`` for image-row coordinates such
+        as those of a ``.bnt``.
+    vertex_colors : (n, 3) or (n, 4), optional
+        uint8 in [0, 255] or float in [0, 1]: OBJ ``v x y z r g b``, PLY red/green/blue/alpha.
+    """
+
+    vertices = as_points(vertices, "vertices")
+    faces = as_faces(np.asarray(faces).reshape(-1, 3) if np.size(faces) == 0 else faces, len(vertices))
+    n = len(vertices)
+    if uv is not None:
+        uv = as_points(uv, "uv", dim=2)
+        if len(uv) != n:
+            raise ValueError(f"uv must have shape ({n}, 2), got {uv.shape}")
+    if n >= 2**31:
+        raise ValueError(f"write_mesh stores vertex indices as int32; {n} vertices are too many")
+    colors = None if vertex_colors is None else _colors_uint8(vertex_colors, n)
+    suffix = Path(path).suffix.lower()
+    if suffix == ".obj":
+        data = _obj_bytes(vertices, faces, uv, colors)
+    elif suffix == ".ply":
+        data = _ply_bytes(vertices, faces, uv, colors)
+    else:
+        raise ValueError(f"{str(path)!r}: write_mesh writes .obj or .ply, not {suffix!r}")
+    _atomic_write(path, data)
+
+
+def _obj_bytes(vertices, faces, uv, colors) -> bytes:
+    out = _stdio.StringIO()
+    out.write("# written by tpscore; units mm\n")
+    # %.17g round-trips float64 exactly; np.savetxt formats the whole block in C.
+    if colors is None:
+        np.savetxt(out, vertices, fmt="v %.17g %.17g %.17g")
+    else:
+        block = np.concatenate([vertices, colors[:, :3] / 255.0], axis=1)
+        np.savetxt(out, block, fmt="v %.17g %.17g %.17g %.6g %.6g %.6g")
+    if uv is not None:
+        np.savetxt(out, uv, fmt="vt %.17g %.17g")
+    if len(faces):
+        one_based = faces + 1
+        if uv is not None:
+            np.savetxt(out, np.repeat(one_based, 2, axis=1), fmt="f %d/%d %d/%d %d/%d")
+        else:
+            np.savetxt(out, one_based, fmt="f %d %d %d")
+    return out.getvalue().encode("ascii")
+
+
+def _ply_bytes(vertices, faces, uv, colors) -> bytes:
+    n, m = len(vertices), len(faces)
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    header = ["ply", "format binary_little_endian 1.0", "comment written by tpscore; units mm",
+              f"element vertex {n}", "property double x", "property double y", "property double z"]
+    if uv is not None:
+        fields += [("texture_u", "<f8"), ("texture_v", "<f8")]
+        header += ["property double texture_u", "property double texture_v"]
+    if colors is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1"), ("alpha", "u1")]
+        header += ["property uchar red", "property uchar green", "property uchar blue", "property uchar alpha"]
+    header += [f"element face {m}", "property list uchar int vertex_indices", "end_header"]
+    table = np.empty(n, dtype=np.dtype(fields))
+    table["x"], table["y"], table["z"] = vertices[:, 0], vertices[:, 1], vertices[:, 2]
+    if uv is not None:
+        table["texture_u"], table["texture_v"] = uv[:, 0], uv[:, 1]
+    if colors is not None:
+        for k, name in enumerate(("red", "green", "blue", "alpha")):
+            table[name] = colors[:, k]
+    face_table = np.empty(m, dtype=np.dtype([("count", "u1"), ("indices", "<i4", (3,))]))
+    face_table["count"] = 3
+    face_table["indices"] = faces
+    return ("\n".join(header) + "\n").encode("ascii") + table.tobytes() + face_table.tobytes()
+
+
+def write_npz(path, **arrays) -> None:
+    """Write arrays to a compressed ``.npz`` (atomically, like every writer here)."""
+
+    buffer = _stdio.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    _atomic_write(path, buffer.getvalue())

@@ -1,0 +1,322 @@
+"""Pose and size normalisation of a face against a reference face.
+
+Two ways to bring a face into the reference frame:
+
+* ``"affine"`` -- the method's transform: translate the nose tip to the origin, then
+  apply T = A B^-1, where the columns of B are the face's outer eye corners, chin
+  middle and nose tip in homogeneous coordinates and A holds the same landmarks of
+  the reference. It maps those four landmarks exactly and needs all four.
+* ``"similarity"`` -- a least-squares rotation, uniform scale and translation over all
+  landmarks present in both faces (Umeyama's closed form). It uses every landmark,
+  so one noisy or missing landmark matters less; it is the default.
+
+Every result keeps its 4 x 4 matrix so that outputs can be mapped back into the
+scan's own frame.
+
+A face's own frame (:func:`face_frame`: origin at the nose tip, axes from the eyes and
+the chin-to-brow line, the facial unit) needs no reference face; it is the one frame
+from landmarks that every method places things in.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .._validation import as_points
+from ..spatial import KDTree, MeshSurface
+from .grid import FaceGrid
+from .landmarks import N_LANDMARKS, anchor_point, as_landmarks, landmark_index
+
+__all__ = [
+    "FaceFrame",
+    "face_frame",
+    "FrameTransform",
+    "similarity_transform",
+    "thesis_affine_transform",
+    "landmark_transform",
+    "AFFINE_LANDMARKS",
+    "NORMALISATION_METHODS",
+    "NormalisedFace",
+    "normalise_face",
+]
+
+#: The four landmarks of the method's affine normalisation (B's columns).
+AFFINE_LANDMARKS = ("Outer left eye corner", "Outer right eye corner", "Chin middle", "Nose tip")
+NORMALISATION_METHODS = ("similarity", "affine", "none")
+
+
+@dataclass(frozen=True)
+class FrameTransform:
+    """An affine map between two frames, as a 4 x 4 homogeneous matrix.
+
+    ``apply`` maps points from the source frame (e.g. the scan) to the target frame
+    (e.g. the reference face); ``apply_inverse`` maps them back.
+    """
+
+    matrix: np.ndarray
+    method: str = "affine"
+
+    def __post_init__(self):
+        m = np.array(self.matrix, dtype=np.float64)
+        if m.shape != (4, 4) or not np.isfinite(m).all():
+            raise ValueError(f"matrix must be a finite 4 x 4 array, got shape {m.shape}")
+        if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
+            raise ValueError("matrix must be affine: its last row must be [0, 0, 0, 1]")
+        if abs(np.linalg.det(m[:3, :3])) < 1e-12:
+            raise ValueError("matrix is singular: the transform collapses space")
+        m.setflags(write=False)
+        object.__setattr__(self, "matrix", m)
+
+    @classmethod
+    def identity(cls) -> "FrameTransform":
+        return cls(np.eye(4), "none")
+
+    @property
+    def scale(self) -> float:
+        """Mean linear scale factor (cube root of the determinant)."""
+        return float(abs(np.linalg.det(self.matrix[:3, :3])) ** (1.0 / 3.0))
+
+    def apply(self, points) -> np.ndarray:
+        """Map (..., 3) points into the target frame (NaN rows stay NaN)."""
+        p = np.asarray(points, dtype=np.float64)
+        return p @ self.matrix[:3, :3].T + self.matrix[:3, 3]
+
+    def apply_inverse(self, points) -> np.ndarray:
+        """Map (..., 3) points from the target frame back to the source frame."""
+        return self.inverse().apply(points)
+
+    def apply_vectors(self, vectors) -> np.ndarray:
+        """Map displacement vectors (no translation)."""
+        return np.asarray(vectors, dtype=np.float64) @ self.matrix[:3, :3].T
+
+    def inverse(self) -> "FrameTransform":
+        return FrameTransform(np.linalg.inv(self.matrix), self.method)
+
+    def then(self, other: "FrameTransform") -> "FrameTransform":
+        """The transform that applies ``self`` first, then ``other``."""
+        return FrameTransform(other.matrix @ self.matrix, f"{self.method}+{other.method}")
+
+
+@dataclass(frozen=True)
+class FaceFrame:
+    """A face's own frame, from its landmarks.
+
+    ``origin`` is the nose tip; the rows of ``axes`` are the unit x (toward the subject's
+    left, through the eye corners), y (up, from the chin toward the brows, made
+    orthogonal to x) and z = x cross y (out of the face). ``facial_unit`` is the
+    distance between the inner eye corners (mm), ``forehead`` the midpoint of the inner
+    eyebrows.
+    """
+
+    origin: np.ndarray
+    axes: np.ndarray
+    facial_unit: float
+    forehead: np.ndarray
+
+    def to_frame(self, points) -> np.ndarray:
+        """World points (m, 3) -> frame coordinates (m, 3)."""
+        return (np.asarray(points, dtype=np.float64) - self.origin) @ self.axes.T
+
+    def to_world(self, coordinates) -> np.ndarray:
+        """Frame coordinates (m, 3) -> world points (m, 3)."""
+        return np.asarray(coordinates, dtype=np.float64) @ self.axes + self.origin
+
+
+def face_frame(landmarks) -> FaceFrame:
+    """The frame of a face with the given (22, 3) landmarks (see :class:`FaceFrame`).
+
+    Needs the nose tip, the four eye corners, the inner eyebrows and the chin middle;
+    raises ValueError naming the first one that is missing.
+    """
+    lm = as_landmarks(landmarks)
+
+    def mean_of(*names: str) -> np.ndarray:
+        return anchor_point(lm, dict.fromkeys(names, 1.0), "the face frame")
+
+    tip = mean_of("Nose tip")
+    left_eye = mean_of("Outer left eye corner", "Inner left eye corner")
+    right_eye = mean_of("Outer right eye corner", "Inner right eye corner")
+    forehead = mean_of("Inner left eyebrow", "Inner right eyebrow")
+    chin = mean_of("Chin middle")
+    x = left_eye - right_eye
+    up = forehead - chin
+    if np.linalg.norm(x) == 0 or np.linalg.norm(np.cross(x, up)) <= 1e-9 * np.linalg.norm(x) * np.linalg.norm(up):
+        raise ValueError("landmarks: the eyes and the chin-to-brow line are degenerate; no face frame")
+    x = x / np.linalg.norm(x)
+    y = up - (up @ x) * x
+    y = y / np.linalg.norm(y)
+    z = np.cross(x, y)
+    unit = float(np.linalg.norm(mean_of("Inner left eye corner") - mean_of("Inner right eye corner")))
+    if unit <= 0:
+        raise ValueError("landmarks: the inner eye corners coincide; the facial unit is 0")
+    return FaceFrame(origin=tip, axes=np.stack([x, y, z]), facial_unit=unit, forehead=forehead)
+
+
+def _paired(landmarks, reference, name):
+    lm = as_points(landmarks, name, finite=False)
+    ref = as_points(reference, "reference landmarks", finite=False)
+    if lm.shape != ref.shape:
+        raise ValueError(f"{name} has shape {lm.shape} but the reference has {ref.shape}")
+    both = np.isfinite(lm).all(axis=1) & np.isfinite(ref).all(axis=1)
+    return lm, ref, both
+
+
+def similarity_transform(source, target, *, scale: bool = True, weights=None) -> FrameTransform:
+    """Least-squares similarity (rotation, optional uniform scale, translation) source -> target.
+
+    Parameters
+    ----------
+    source, target : (n, 3) array_like
+        Corresponding points (mm); rows with NaN in either are ignored.
+    scale : bool
+        Fit a uniform scale; False gives a rigid transform.
+    weights : (n,) array_like, optional
+        Non-negative weight per pair.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 3 usable pairs, or pairs on one line (rotation undetermined).
+    """
+    src, dst, both = _paired(source, target, "source")
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64).ravel()
+    if w.shape != (len(src),) or not np.isfinite(w).all() or (w < 0).any():
+        raise ValueError(f"weights must be {len(src)} finite non-negative numbers")
+    use = both & (w > 0)
+    if use.sum() < 3:
+        raise ValueError(
+            f"a similarity transform needs at least 3 landmark pairs present in both faces, "
+            f"got {int(use.sum())}"
+        )
+    src, dst, w = src[use], dst[use], w[use] / w[use].sum()
+    mu_s, mu_d = w @ src, w @ dst
+    xs, xd = src - mu_s, dst - mu_d
+    cov = (xd * w[:, None]).T @ xs
+    u, sing, vt = np.linalg.svd(cov)
+    if sing[1] < 1e-9 * max(sing[0], 1e-300):
+        raise ValueError("the landmark pairs lie on one line: the rotation is undetermined")
+    d = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        d[2, 2] = -1.0  # a reflection is not a pose: flip the weakest axis instead
+    rotation = u @ d @ vt
+    var_s = float((w * (xs**2).sum(axis=1)).sum())
+    s = float(np.trace(np.diag(sing) @ d) / var_s) if scale else 1.0
+    m = np.eye(4)
+    m[:3, :3] = s * rotation
+    m[:3, 3] = mu_d - s * rotation @ mu_s
+    return FrameTransform(m, "similarity" if scale else "rigid")
+
+
+def thesis_affine_transform(landmarks, reference) -> FrameTransform:
+    """The method's affine normalisation T = A B^-1 after moving the nose tip to the origin.
+
+    Parameters
+    ----------
+    landmarks, reference : (22, 3) array_like
+        The face's and the reference's landmarks (mm), Bosphorus order.
+
+    Raises
+    ------
+    ValueError
+        One of the four landmarks is missing, or they are coplanar (B singular).
+    """
+    lm, ref, both = _paired(landmarks, reference, "landmarks")
+    if len(lm) != N_LANDMARKS:
+        raise ValueError(f"landmarks must have shape ({N_LANDMARKS}, 3), got {lm.shape}")
+    idx = [landmark_index(n) for n in AFFINE_LANDMARKS]
+    missing = [AFFINE_LANDMARKS[k] for k, i in enumerate(idx) if not both[i]]
+    if missing:
+        raise ValueError(
+            "the affine normalisation needs the outer eye corners, chin middle and nose tip; "
+            f"missing: {', '.join(missing)}"
+        )
+    tip = landmark_index("Nose tip")
+    shift = np.eye(4)
+    shift[:3, 3] = -lm[tip]
+    b = np.vstack([(lm[idx] - lm[tip]).T, np.ones(4)])
+    a = np.vstack([ref[idx].T, np.ones(4)])
+    if abs(np.linalg.det(b[:3, :3] - b[:3, 3:4])) < 1e-6 * np.abs(b[:3]).max() ** 3:
+        raise ValueError("the outer eye corners, chin middle and nose tip are coplanar")
+    t = a @ np.linalg.inv(b)
+    t[3] = [0.0, 0.0, 0.0, 1.0]  # exact: both bottom rows are ones
+    return FrameTransform(t @ shift, "affine")
+
+
+def landmark_transform(landmarks, reference, method: str = "similarity") -> FrameTransform:
+    """Transform taking a face's frame to the reference frame, by the named method.
+
+    ``method`` is one of ``"similarity"`` (default), ``"affine"`` or ``"none"``.
+    """
+    if method == "similarity":
+        return similarity_transform(landmarks, reference)
+    if method == "affine":
+        return thesis_affine_transform(landmarks, reference)
+    if method == "none":
+        return FrameTransform.identity()
+    raise ValueError(f"unknown normalisation method {method!r}; use one of {NORMALISATION_METHODS}")
+
+
+@dataclass
+class NormalisedFace:
+    """A face grid in the reference frame, with the transform from its scan frame."""
+
+    grid: FaceGrid
+    transform: FrameTransform
+    _surface: MeshSurface | None = field(default=None, repr=False)
+    _tree: KDTree | None = field(default=None, repr=False)
+    _valid_index: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def landmarks(self) -> np.ndarray:
+        return self.grid.landmarks
+
+    def _build(self):
+        if self._tree is None:
+            flat = self.grid.points.reshape(-1, 3)
+            self._valid_index = np.flatnonzero(self.grid.mask.ravel())
+            if len(self._valid_index) < 3:
+                raise ValueError("the face has fewer than 3 valid vertices")
+            self._tree = KDTree(flat[self._valid_index])
+            mesh = self.grid.mesh()
+            self._surface = MeshSurface(mesh.vertices, mesh.faces) if len(mesh.faces) else None
+
+    def snap(self, points, mode: str) -> np.ndarray:
+        """Snap (k, 3) points onto this face: closest surface point or nearest vertex."""
+        self._build()
+        points = np.asarray(points, dtype=np.float64)
+        if mode == "surface" and self._surface is not None:
+            return self._surface.closest_point(points).points
+        _, nearest = self._tree.query(points)
+        return self._tree.points[nearest]
+
+    def nearest_vertex(self, points) -> np.ndarray:
+        """Flat grid index (into H*W) of the valid vertex nearest to each (k, 3) point."""
+        self._build()
+        _, nearest = self._tree.query(np.asarray(points, dtype=np.float64))
+        return self._valid_index[nearest]
+
+    def surface(self) -> MeshSurface:
+        self._build()
+        if self._surface is None:
+            raise ValueError("the face has no triangles (too few valid grid vertices)")
+        return self._surface
+
+
+def normalise_face(grid: FaceGrid, reference_landmarks, method: str = "similarity") -> NormalisedFace:
+    """Bring a face grid into the reference frame by its landmarks.
+
+    The affine method needs four particular landmarks; when one is missing, the face
+    is normalised by the similarity over all landmarks instead, with a warning.
+    """
+    try:
+        transform = landmark_transform(grid.landmarks, reference_landmarks, method)
+    except ValueError as exc:
+        if method != "affine" or "missing" not in str(exc):
+            raise
+        warnings.warn(f"{exc}; using the similarity normalisation for this face", stacklevel=2)
+        transform = landmark_transform(grid.landmarks, reference_landmarks, "similarity")
+    moved = replace(grid, points=transform.apply(grid.points),
+                    landmarks=transform.apply(grid.landmarks))
+    return NormalisedFace(moved, transform)

@@ -1,0 +1,216 @@
+"""Texture tracking: colour images of two scans of one skin, slid along a smooth surface
+by a known amount, are matched back to that slide, which the geometry cannot see."""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from tpscore.expression.registration import MotionOptions, register_surfaces
+from tpscore.face.grid import FaceGrid
+from tpscore.spatial import MeshSurface
+from tpscore.expression.texture import TextureOptions, TextureWarning, track_texture
+
+SIZE = 120                  # grid 120 x 120 over [-48, 48] mm: 0.8 mm spacing
+EXTENT = 48.0
+SLIDE_MM = 2.0              # peak slide of the skin along x
+SLIDE_SIGMA_MM = 14.0
+
+
+def height(x, y):
+    """A gentle dome: no feature tells where the skin went."""
+    return 30.0 - (x ** 2 + y ** 2) / 250.0
+
+
+def pattern(x, y, seed=3):
+    """A skin-like pattern: random-phase cosines of 1 to 4 mm wavelength."""
+    rng = np.random.default_rng(seed)
+    angle = rng.uniform(0, 2 * np.pi, 96)
+    wavelength = rng.uniform(1.0, 4.0, 96)
+    phase = rng.uniform(0, 2 * np.pi, 96)
+    k = 2 * np.pi / wavelength
+    value = sum(np.cos(k[i] * (np.cos(angle[i]) * x + np.sin(angle[i]) * y) + phase[i]) for i in range(96))
+    return value / np.sqrt(48.0)
+
+
+def slide(x, y):
+    return SLIDE_MM * np.exp(-(x ** 2 + y ** 2) / (2 * SLIDE_SIGMA_MM ** 2))
+
+
+def textured_pair(*, seed=3, contrast=40.0, exposure=1.0):
+    """Neutral and expressive grids of one dome; the skin of the expressive one slid by
+    ``slide`` along x (and the surface). Images at twice the grid's resolution."""
+    xs = np.linspace(-EXTENT, EXTENT, SIZE)
+    x, y = np.meshgrid(xs, xs[::-1])
+    points = np.dstack([x, y, height(x, y)])
+    # image pixel (r, c) shows the grid position of u = (c + 0.5) / 2 SIZE
+    c = (np.arange(2 * SIZE) + 0.5) / 2 - 0.5
+    px = -EXTENT + c * (2 * EXTENT / (SIZE - 1))
+    ix, iy = np.meshgrid(px, px[::-1])
+    rest_x = ix.copy()
+    for _ in range(20):                     # the skin seen at ix came from rest_x
+        rest_x = ix - slide(rest_x, iy)
+
+    def image(of_x):
+        grey = 128.0 + contrast * pattern(of_x, iy, seed)
+        return np.clip(np.round(exposure * grey), 0, 255).astype(np.uint8)[..., None].repeat(3, axis=2)
+
+    neutral = FaceGrid.from_points(points)
+    neutral.image = image(ix)
+    expressive = FaceGrid.from_points(points)
+    expressive.image = image(rest_x)
+    return neutral, expressive
+
+
+def true_motion(points):
+    """Where each neutral point's skin went: x + slide, back on the dome."""
+    x, y = points[..., 0], points[..., 1]
+    moved_x = x + slide(x, y)
+    return np.stack([moved_x, y, height(moved_x, y)], axis=-1) - points
+
+
+def test_matches_follow_the_slide():
+    neutral, expressive = textured_pair()
+    matches = track_texture(neutral, expressive)
+    assert matches is not None
+    assert matches.matched_fraction > 0.8
+    used = matches.confidence > 0
+    error = np.linalg.norm(matches.targets[used] - neutral.points[used] - true_motion(neutral.points[used]), axis=1)
+    # the flow's error on a clear pattern is a small fraction of the 2 mm slide
+    assert np.median(error) < 0.1, np.median(error)
+    assert np.percentile(error, 95) < 0.3
+
+
+def test_exposure_change_does_not_matter():
+    # the same pair photographed with 30 % more light on the neutral scan
+    neutral, expressive = textured_pair()
+    brighter, _ = textured_pair(exposure=1.3)
+    a = track_texture(neutral, expressive)
+    b = track_texture(brighter, expressive)
+    used = (a.confidence > 0) & (b.confidence > 0)
+    assert used.mean() > 0.7
+    assert np.median(np.linalg.norm(a.targets[used] - b.targets[used], axis=1)) < 0.05
+
+
+def test_registration_follows_the_texture_where_geometry_sees_nothing():
+    neutral, expressive = textured_pair()
+    mesh = expressive.mesh()
+    surface = MeshSurface(mesh.vertices, mesh.faces)
+    landmarks = np.full((22, 3), np.nan)
+    truth = true_motion(neutral.points)
+    moving = np.linalg.norm(truth, axis=-1) > 0.5
+
+    def error(texture):
+        field = register_surfaces(neutral.points, neutral.mask, landmarks, surface, landmarks,
+                                  MotionOptions(), texture=texture)
+        got = field(neutral.points.reshape(-1, 3)).reshape(truth.shape)
+        return np.sqrt(np.mean(np.sum((got - truth)[moving] ** 2, axis=-1)) / np.mean(np.sum(truth[moving] ** 2, axis=-1)))
+
+    geometry_only = error(None)
+    with_texture = error(track_texture(neutral, expressive))
+    # the dome is the same surface before and after: geometry alone finds no slide
+    assert geometry_only > 0.9
+    assert with_texture < 0.2, with_texture
+
+
+def test_no_image_or_a_flat_one_falls_back_with_a_warning():
+    neutral, expressive = textured_pair()
+    bare = FaceGrid.from_points(expressive.points)
+    with pytest.warns(TextureWarning, match="expressive scan has no colour image"):
+        assert track_texture(neutral, bare) is None
+    dark = FaceGrid.from_points(expressive.points)
+    dark.image = np.full_like(expressive.image, 3)
+    with pytest.warns(TextureWarning, match="too dark"):
+        assert track_texture(neutral, dark) is None
+    flat = FaceGrid.from_points(expressive.points)
+    flat.image = np.full_like(expressive.image, 128)
+    with pytest.warns(TextureWarning, match="no texture"):
+        assert track_texture(neutral, flat) is None
+
+
+def test_unrelated_texture_fails_the_consistency_check():
+    neutral, _ = textured_pair()
+    _, stranger = textured_pair(seed=11)
+    with pytest.warns(TextureWarning, match="matched less than"):
+        assert track_texture(neutral, stranger) is None
+
+
+@pytest.mark.parametrize("kwargs, name", [
+    (dict(shading_sigma_mm=0.0), "shading_sigma_mm"),
+    (dict(consistency_px=np.nan), "consistency_px"),
+    (dict(rim_px=1.5), "rim_px"),
+    (dict(min_matched_fraction=1.0), "min_matched_fraction"),
+])
+def test_bad_options_are_rejected(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        TextureOptions(**kwargs)
+
+
+def test_no_match_lands_in_a_hole_of_the_expressive_scan():
+    # a hole in the expressive depth scan where its image still shows skin: matches must
+    # not land in it (nothing there to lift them to), and the rest still match
+    neutral, expressive = textured_pair()
+    x, y = expressive.points[..., 0], expressive.points[..., 1]
+    hole = np.hypot(x - 10.0, y - 5.0) < 6.0
+    holed = FaceGrid.from_points(np.where(hole[..., None], np.nan, expressive.points))
+    holed.image = expressive.image
+    matches = track_texture(neutral, holed)
+    targets = matches.targets[matches.confidence > 0]
+    assert np.hypot(targets[:, 0] - 10.0, targets[:, 1] - 5.0).min() > 6.0
+    assert matches.matched_fraction > 0.7
+
+
+@pytest.fixture(scope="module")
+def scans_with_images(shared, tmp_path_factory):
+    """Two subjects of make_scans.py: neutral and smile, with their colour images."""
+    import subprocess
+    import sys
+
+    folder = tmp_path_factory.mktemp("scans")
+    subprocess.run([sys.executable, str(shared / "tools" / "make_scans.py"), str(folder), "--subjects", "0", "1",
+                    "--expressions", "N_N_0", "LFAU_12_0"], check=True, capture_output=True)
+    return folder
+
+
+def test_transfer_tracks_texture_when_the_scans_have_images(scans_with_images):
+    import tpscore
+
+    def load(subject, code):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", tpscore.LandmarkSnapWarning)
+            return tpscore.load_scan(scans_with_images / f"bs{subject:03d}" / f"bs{subject:03d}_{code}.bnt")
+
+    neutral, smile, target = load(0, "N_N_0"), load(0, "LFAU_12_0"), load(1, "N_N_0")
+    result = tpscore.transfer(neutral, smile, target, "12")
+    assert result.model.texture is not None and result.model.texture.matched_fraction > 0.5
+    assert result.timings["texture"] > 0
+    # without the expressive scan's image the geometry alone says how the skin moved
+    bare = FaceGrid.from_points(smile.points, smile.mask, smile.landmarks)
+    with pytest.warns(TextureWarning, match="expressive scan has no colour image"):
+        plain = tpscore.transfer(neutral, bare, target, "12")
+    assert plain.model.texture is None and "texture" not in plain.timings
+    # the two fields differ: the texture moved the skin along the surface
+    moved = np.linalg.norm(result.vertices - plain.vertices, axis=-1)[result.mask]
+    assert np.percentile(moved, 99) > 0.3
+
+
+def test_refined_matches_follow_a_warp_and_still_find_the_slide():
+    neutral, expressive = textured_pair()
+    first = track_texture(neutral, expressive)
+    # a guess of the motion half way to the truth: the refined flow finds the rest
+    guess = 0.5 * true_motion(neutral.points)
+    refined = first.refined(guess)
+    used = refined.confidence > 0
+    assert used.mean() > 0.7
+    error = np.linalg.norm(refined.targets[used] - neutral.points[used] - true_motion(neutral.points[used]), axis=1)
+    assert np.median(error) < 0.1, np.median(error)
+    # the registration can match again half way through its iterations
+    mesh = expressive.mesh()
+    landmarks = np.full((22, 3), np.nan)
+    field = register_surfaces(neutral.points, neutral.mask, landmarks, MeshSurface(mesh.vertices, mesh.faces),
+                              landmarks, MotionOptions(texture_refine_after=5), texture=first)
+    assert field.texture is not first
+    got = field(neutral.points.reshape(-1, 3)).reshape(neutral.points.shape)
+    moving = np.linalg.norm(true_motion(neutral.points), axis=-1) > 0.5
+    assert np.sqrt(np.mean(np.sum((got - true_motion(neutral.points))[moving] ** 2, axis=-1))) < 0.3
