@@ -36,6 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
+import tpscore
+from tpscore import physics
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fidelity import AU_CODES, ensure_scans, load_module, parse_subjects, scan_path, shared_dir  # noqa: E402
@@ -63,9 +66,6 @@ class Subject:
     """A subject's neutral scan, its fitted head and physical skin, and its elastic face."""
 
     def __init__(self, scans: Path, subject: int):
-        import tpscore
-        from tpscore import physics
-
         base = scan_path(scans, subject, "N_N_0")
         self.grid = tpscore.load_scan(str(base) + ".bnt")
         scan = tpscore.read_bnt(str(base) + ".bnt")
@@ -87,7 +87,8 @@ class Subject:
         # The elastic face needs every landmark of its frame; where the scan lacks one,
         # the fitted head's (the template's landmark vertex, fitted) stands in.
         landmarks = np.where(np.isfinite(self.grid.landmarks), self.grid.landmarks, self.head.landmarks)
-        face = tpscore.ElasticFace(mesh.vertices, mesh.faces, landmarks=landmarks, unanchored="fix")
+        face = tpscore.ElasticFace(mesh.vertices, mesh.faces, landmarks=landmarks,
+                                   options=tpscore.ElasticOptions(unanchored="fix"))
         self.muscles = tpscore.MuscleModel(face)
 
     def skin_prediction(self, au: str, level: float):

@@ -22,14 +22,15 @@ from pathlib import Path
 
 import numpy as np
 
+from tpscore.physics import SkinModel, build_template
+from tpscore.physics.system import INTEGRATORS
+
 ROOT = Path(__file__).resolve().parents[1]
 SIMULATED_S = 0.15
 CASES = (("smile", {"12": 0.5}, 0.0), ("jaw 15 deg", {}, 15.0))
 
 
 def run(model, contractions, jaw_deg, integrator, dt):
-    from tpscore.physics.system import INTEGRATORS
-
     arrays = model.layers.arrays
     rest = model.layers.rest
     vector = model.contraction_vector(contractions)
@@ -45,8 +46,6 @@ def run(model, contractions, jaw_deg, integrator, dt):
 
 
 def main() -> int:
-    from tpscore.physics import SkinModel, build_template
-
     lines = ["| integrator | skin | step | smile | jaw 15 deg | wall time per step |", "|---|---|---:|---|---|---:|"]
     model = SkinModel(build_template(2.5))
     limit = model.stable_step

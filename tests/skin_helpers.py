@@ -6,7 +6,8 @@ import numpy as np
 
 from tpscore.face.landmarks import N_LANDMARKS
 from tpscore.physics import Head, LinearMuscle, SphincterMuscle, SurfacePoint
-from tpscore.physics.system import SkinArrays
+from tpscore.physics.system import SkinArrays, rim_edges
+from tpscore.spatial import MeshSurface
 
 
 def flat_head(size: int = 9, spacing: float = 2.5, depth: float = 8.0, muscles=(), mandible_rows: int = 0) -> Head:
@@ -33,8 +34,6 @@ def flat_head(size: int = 9, spacing: float = 2.5, depth: float = 8.0, muscles=(
 
 def surface_point(head: Head, x: float, y: float) -> SurfacePoint:
     """The point of the head's (flat) mesh above (x, y)."""
-    from tpscore.spatial import MeshSurface
-
     hits = MeshSurface(head.vertices, head.faces).intersect_rays([[x, y, 10.0]], [[0.0, 0.0, -1.0]])
     assert hits.hit[0]
     return SurfacePoint(int(hits.triangles[0]), tuple(hits.barycentric[0]))
@@ -76,8 +75,6 @@ def random_arrays(seed: int = 0, n: int = 7) -> SkinArrays:
     corner_order = np.argsort(faces.reshape(-1), kind="stable")
     face_indptr = np.concatenate([[0], np.cumsum(np.bincount(faces.reshape(-1), minlength=25))])
     bones = (skull[:, 1] < -6).astype(np.int64)  # the bottom row on the mandible
-    from tpscore.physics.system import rim_edges
-
     return SkinArrays(
         masses=rng.uniform(0.5, 1.5, n), spring_first=first, spring_second=second, spring_rest=rest,
         spring_stiffness=k, spring_stiffness_high=3 * k, spring_knee=np.full(s, 0.05),

@@ -9,10 +9,13 @@ import pytest
 
 import tpscore
 from tpscore import datasets, physics
+from tpscore.cli import main
+from tpscore.face import io
 from tpscore.face.landmarks import landmark_index
-from tpscore.physics import SkinMaterial, SkinModel, SkinWarning, SimulationError
+from tpscore.physics import SimulationError, SimulationOptions, SkinMaterial, SkinModel, SkinWarning
 from tpscore.physics.fitting import carry_head, deform_from_vertices
 from tpscore.physics.head import REGIONS, build_template
+from tpscore.reference.skin import bone_points
 
 from skin_helpers import flat_head, linear_muscle
 
@@ -68,7 +71,7 @@ def test_contractions_for_action_units(template):
 
 def test_relaxed_template_stays_at_rest(coarse):
     _, model = coarse
-    result = model.simulate(None, ramp_time=0.0)
+    result = model.simulate(None, options=SimulationOptions(ramp_time=0.0))
     # At rest every force is zero up to the rounding of the rest lengths (~1e-10 of a
     # force that moves a particle ~1e-15 mm).
     assert result.settled and np.abs(result.layers - model.layers.rest).max() < 1e-9
@@ -115,8 +118,6 @@ def test_the_jaw_opens_the_mouth_about_its_axis(coarse):
     # bone under the chin moves ~17 mm, down and back; the soft tissue over it follows
     # much of that (the loose tissue over the bone and the stretched cheeks hold back
     # the rest), the brows stay
-    from tpscore.reference.skin import bone_points
-
     arrays = model.layers.arrays
     bone = bone_points(arrays, head.skull_vertices[[chin]], [1], np.radians(12.0))[0] - head.skull_vertices[chin]
     assert bone[1] < -10.0
@@ -149,16 +150,22 @@ def test_bad_input_names_the_argument(coarse):
         model.simulate(None, jaw=-5)
     with pytest.raises(ValueError, match="jaw"):
         model.simulate(None, jaw=45)
-    with pytest.raises(ValueError, match="integrator"):
-        model.simulate(None, integrator="rk4")
-    with pytest.raises(ValueError, match="dt"):
-        model.simulate(None, dt=-1e-3)
-    with pytest.raises(ValueError, match="frames"):
-        model.simulate(None, frames=1)
+    with pytest.raises(ValueError, match="SimulationOptions.integrator"):
+        SimulationOptions(integrator="rk4")
+    with pytest.raises(ValueError, match="SimulationOptions.dt"):
+        SimulationOptions(dt=-1e-3)
+    with pytest.raises(ValueError, match="SimulationOptions.frames"):
+        SimulationOptions(frames=1)
+    with pytest.raises(ValueError, match="SimulationOptions.max_time"):
+        SimulationOptions(max_time=0.0)
+    with pytest.raises(ValueError, match="options"):
+        model.simulate(None, options={"dt": 1e-3})
     with pytest.raises(ValueError, match="head"):
         SkinModel("template")
     with pytest.raises(ValueError, match="SkinMaterial"):
         SkinMaterial(dermal_depth=0.9, hypodermal_depth=0.5)
+    with pytest.raises(ValueError, match="SkinMaterial.drag"):
+        SkinMaterial(drag=-1.0)
     with pytest.raises(ValueError, match="skull_vertices"):
         head.with_changes(skull_vertices=head.skull_vertices[:-1])
 
@@ -166,7 +173,8 @@ def test_bad_input_names_the_argument(coarse):
 def test_an_unstable_step_is_cut_into_stable_substeps_with_a_warning(coarse):
     head, model = coarse
     with pytest.warns(SkinWarning, match="stable step"):
-        result = model.simulate(head.contractions_for({"12": 0.3}), dt=10 * model.stable_step)
+        result = model.simulate(head.contractions_for({"12": 0.3}),
+                                options=SimulationOptions(dt=10 * model.stable_step))
     assert result.dt <= model.stable_step and np.isfinite(result.vertices).all()
 
 
@@ -178,7 +186,7 @@ def test_contractions_that_invert_elements_are_scaled_down_with_a_warning():
     model = SkinModel(head)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        unclamped = model._settle(np.array([1.0]), 0.0, "symplectic", model.stable_step, 0.03, 0.5, 10, 1.0, 2e-3)
+        unclamped = model._settle(np.array([1.0]), 0.0, SimulationOptions(), model.stable_step)
     assert model.inverted(unclamped["positions"]) > 0
     with pytest.warns(SkinWarning, match="invert"):
         result = model.simulate(np.array([1.0]))
@@ -203,7 +211,7 @@ def test_a_diverging_run_is_repeated_at_a_smaller_step_and_never_returns_nan(coa
 
     monkeypatch.setattr(model, "_run", diverge_twice)
     with pytest.warns(SkinWarning, match="diverged"):
-        result = model.simulate(head.contractions_for({"12": 0.2}), ramp_time=0.005, max_time=0.01)
+        result = model.simulate(head.contractions_for({"12": 0.2}), options=SimulationOptions(ramp_time=0.005, max_time=0.01))
     assert calls[1] == pytest.approx(calls[0] / 2) and calls[2] == pytest.approx(calls[0] / 4)
     assert np.isfinite(result.layers).all()
 
@@ -216,7 +224,7 @@ def test_a_diverging_run_is_repeated_at_a_smaller_step_and_never_returns_nan(coa
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         with pytest.raises(SimulationError):
-            model.simulate(head.contractions_for({"12": 0.2}), ramp_time=0.005, max_time=0.01)
+            model.simulate(head.contractions_for({"12": 0.2}), options=SimulationOptions(ramp_time=0.005, max_time=0.01))
 
 
 def test_carrying_through_an_affine_fit_moves_everything_with_it(coarse):
@@ -278,9 +286,6 @@ def test_deform_from_vertices_reproduces_a_fitted_template(template):
 
 
 def test_simulate_command_fits_a_scan_and_writes_the_outputs(tmp_path, capsys):
-    from tpscore.face import io
-    from tpscore.cli import main
-
     scan = datasets.make_face(datasets.random_identity(4), spacing_mm=1.0)
     io.write_bnt(tmp_path / "face.bnt", io.BntScan.from_points(scan.points, image_name="face.png"))
     io.write_lm3(tmp_path / "face.lm3", scan.landmarks)

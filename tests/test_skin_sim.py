@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import tpscore
-from tpscore.physics import SkinMaterial, SkinModel
+from tpscore.physics import SimulationOptions, SkinMaterial, SkinModel, load_template
 from tpscore.physics.system import INTEGRATORS, SkinArrays
 from tpscore.reference import skin as reference
 from tpscore.sparse import SparseCholesky
@@ -185,8 +185,8 @@ def test_static_equilibrium_under_a_muscle_matches_the_linearised_direct_solve()
     arrays = model.layers.arrays
     rest = model.layers.rest
     contraction = np.array([1.0])
-    result = model.simulate(contraction, ramp_time=0.0, max_time=3.0, velocity_tolerance=1e-6,
-                            force_tolerance=1e-9)
+    result = model.simulate(contraction, options=SimulationOptions(ramp_time=0.0, max_time=3.0,
+                                                                   velocity_tolerance=1e-6, force_tolerance=1e-9))
     assert result.settled
     displacement = result.layers - rest
     # K u = f: K the springs' and anchors' stiffness at rest, f the muscle's pull there
@@ -203,7 +203,7 @@ def test_static_equilibrium_under_a_muscle_matches_the_linearised_direct_solve()
 def test_relaxed_skin_stays_exactly_at_rest():
     head = flat_head(size=7, muscles=[linear_muscle(flat_head(size=7), attachment=(0.0, 6.0))])
     model = SkinModel(head)
-    result = model.simulate(None, ramp_time=0.0)
+    result = model.simulate(None, options=SimulationOptions(ramp_time=0.0))
     assert result.settled
     assert np.array_equal(result.layers, model.layers.rest)
     assert result.steps <= 20
@@ -217,7 +217,7 @@ def test_no_particle_ends_inside_the_skull():
                            falloff_mm=6.0)
     head = flat_head(size=9, depth=6.0, muscles=[muscle])
     model = SkinModel(head, SkinMaterial(contact_stiffness=0.05))
-    result = model.simulate(np.array([1.0]), max_time=0.3)
+    result = model.simulate(np.array([1.0]), options=SimulationOptions(max_time=0.3))
     assert result.settled and np.isfinite(result.layers).all()
     arrays = model.layers.arrays
     foot = reference.project_contacts(arrays, result.layers, np.zeros_like(result.layers), arrays.particle_foot,
@@ -232,8 +232,6 @@ def test_no_particle_ends_inside_the_skull():
 
 
 def test_results_do_not_depend_on_the_thread_count():
-    from tpscore.physics import load_template
-
     head = load_template()
     model = SkinModel(head)
     arrays = model.layers.arrays

@@ -20,7 +20,7 @@ from .. import datasets, render
 from ..expression import transfer
 from ..face import io
 from ..face.grid import load_scan, resample_scan
-from ..physics import SkinModel, fit_head
+from ..physics import SimulationOptions, SkinModel, fit_head
 
 __all__ = ["run_demo", "run_skin_demo", "DEMO_EXPRESSIONS", "SKIN_DEMO_EXPRESSIONS"]
 
@@ -143,7 +143,8 @@ def run_skin_demo(out_dir="demo-output", *, quiet: bool = False) -> dict:
     animation = []
     summary = {}
     for stem, title, units, jaw in SKIN_DEMO_EXPRESSIONS:
-        result = model.simulate(head.contractions_for(units) if units else None, jaw, frames=12)
+        result = model.simulate(head.contractions_for(units) if units else None, jaw,
+                                options=SimulationOptions(frames=12))
         moved = np.linalg.norm(result.vertices - head.vertices, axis=1)
         summary[stem] = float(moved.max())
         if camera is None:

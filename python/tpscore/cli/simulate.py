@@ -19,7 +19,7 @@ import numpy as np
 from .. import render
 from ..face import io
 from ..face.grid import FaceGrid
-from ..physics import SkinModel, carry_head, deform_from_vertices, fit_head, load_template
+from ..physics import SimulationOptions, SkinModel, carry_head, deform_from_vertices, fit_head, load_template
 
 __all__ = ["add_simulate_parser", "simulate_command", "parse_contractions"]
 
@@ -120,7 +120,7 @@ def simulate_command(args) -> int:
         head = carry_head(template, deform_from_vertices(template, vertices), vertices)
         say(f"carried the template's structure onto {args.fitted}")
     model = SkinModel(head)
-    result = model.simulate(contractions, args.jaw, integrator=args.integrator, dt=args.dt)
+    result = model.simulate(contractions, args.jaw, options=SimulationOptions(integrator=args.integrator, dt=args.dt))
     active = ", ".join(f"{k} {v:.2f}" for k, v in result.contractions.items()) or "no muscle"
     say(f"simulated {active}, jaw {result.jaw_deg:.1f} deg: {result.steps} steps of {result.dt * 1e3:.3f} ms, "
         f"{'settled' if result.settled else 'NOT settled'} after {result.simulated_time * 1e3:.0f} ms "

@@ -7,7 +7,7 @@ from .fitting import carry_head, deform_from_vertices, fit_head
 from .head import Head, build_template, load_template
 from .layers import SkinLayers, SkinMaterial, build_layers
 from .muscles import LinearMuscle, SphincterMuscle, SurfacePoint, place_muscles
-from .simulation import SimulationError, SkinModel, SkinSimulation, SkinWarning
+from .simulation import SimulationError, SimulationOptions, SkinModel, SkinSimulation, SkinWarning
 from .system import SkinArrays
 
 __all__ = [
@@ -22,6 +22,7 @@ __all__ = [
     "SurfacePoint",
     "place_muscles",
     "SkinModel",
+    "SimulationOptions",
     "SkinSimulation",
     "SkinWarning",
     "SimulationError",

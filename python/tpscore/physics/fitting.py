@@ -22,13 +22,16 @@ map from a template already fitted by other means (vertex for vertex).
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Callable
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
 from .._validation import as_points
-from ..face.normalise import face_frame
+from ..adaptation import AdaptResult, adapt
+from ..correspondence import spread_vertices
 from ..face.landmarks import landmark_index
+from ..face.normalise import face_frame
+from ..rbf import RBF
 from .head import Head, load_template
 from .muscles import SphincterMuscle
 
@@ -47,9 +50,6 @@ def deform_from_vertices(template: Head, vertices) -> Callable[[np.ndarray], np.
     pairs (about 400, plus the landmark vertices), lightly smoothed, so points off the
     surface (the skull, the jaw's pivot) move with their surroundings.
     """
-    from ..correspondence import spread_vertices
-    from ..rbf import RBF
-
     vertices = as_points(vertices, "vertices")
     if vertices.shape != template.vertices.shape:
         raise ValueError(f"vertices must have the template's shape {template.vertices.shape}, got {vertices.shape}")
@@ -80,8 +80,6 @@ def carry_head(template: Head, deform, vertices=None) -> Head:
         The fitted head, in the fitted frame, with the template's triangles, regions,
         mandible and muscles.
     """
-    from ..adaptation import AdaptResult
-
     if isinstance(deform, AdaptResult):
         if vertices is None:
             vertices = deform.vertices
@@ -141,7 +139,8 @@ def _carry_sphincter(muscle: SphincterMuscle, mapping, template_landmarks, fitte
     return replace(muscle, epicentre=moved[0], axes=np.stack(new_axes))
 
 
-def fit_head(scan, scan_landmarks, template: Head | None = None, **adapt_options) -> tuple:
+def fit_head(scan, scan_landmarks, template: Head | None = None, *,
+             adapt_options: Mapping[str, Any] | None = None) -> tuple:
     """Fit the template head to a scan and carry its physical structure along.
 
     Parameters
@@ -152,8 +151,8 @@ def fit_head(scan, scan_landmarks, template: Head | None = None, **adapt_options
         The scan's landmarks (NaN where missing).
     template : Head, optional
         Default: the shipped template (:func:`load_template`).
-    **adapt_options
-        Passed to :func:`tpscore.adapt`.
+    adapt_options : mapping, optional
+        Settings of :func:`tpscore.adapt` (default: its own).
 
     Returns
     -------
@@ -162,11 +161,15 @@ def fit_head(scan, scan_landmarks, template: Head | None = None, **adapt_options
     adaptation : AdaptResult
         The fit.
     """
-    from ..adaptation import adapt
-
     template = load_template() if template is None else template
     if not isinstance(template, Head):
         raise ValueError(f"template must be a tpscore.physics.Head, got {type(template).__name__}")
-    result = adapt((template.vertices, template.faces), scan, template.landmark_vertices, scan_landmarks,
-                   **adapt_options)
+    result = _adapt_skin(template, scan, scan_landmarks, dict(adapt_options or {}))
     return carry_head(template, result), result
+
+
+def _adapt_skin(template: Head, scan, scan_landmarks, adapt_options: dict) -> AdaptResult:
+    # The one place the physical skin calls the template adaptation (DESIGN.md,
+    # method 2, of which the skin is the last stage).
+    return adapt((template.vertices, template.faces), scan, template.landmark_vertices, scan_landmarks,
+                 **adapt_options)

@@ -27,6 +27,8 @@ from typing import Mapping
 import numpy as np
 
 from .._validation import as_faces, as_points
+from ..datasets import make_face
+from ..face.io import write_npz
 from ..face.landmarks import LANDMARK_NAMES, MIRROR_LANDMARK, N_LANDMARKS, landmark_index
 from .muscles import LinearMuscle, SphincterMuscle, place_muscles, read_muscle_file
 
@@ -275,8 +277,6 @@ class Head:
     # ---------------------------------------------------------------- files
     def save(self, path) -> None:
         """Write the geometry (not the muscles, which are placed from their definitions)."""
-        from ..face.io import write_npz
-
         write_npz(path, vertices=self.vertices, faces=self.faces, skull_vertices=self.skull_vertices,
                   landmark_vertices=self.landmark_vertices, regions=self.regions,
                   region_names=np.array(self.region_names), mandible=self.mandible,
@@ -380,8 +380,6 @@ def build_template(spacing_mm: float = DEFAULT_SPACING_MM, *, muscles=None) -> H
     muscles : dict, optional
         A parsed muscle file (default: the shipped ``skin_muscles.json``).
     """
-    from ..datasets import make_face
-
     spacing = float(spacing_mm)
     if not np.isfinite(spacing) or not 0.5 <= spacing <= 10:
         raise ValueError(f"spacing_mm must be in [0.5, 10] mm, got {spacing_mm!r}")

@@ -34,12 +34,14 @@ Units: mm, g, s; 1 kPa = 1e3 g / (mm s^2); forces in g mm / s^2 (1 N = 1e6).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
+import scipy.sparse as sp
 
-from .._validation import as_positive
+from .._validation import check_options
 from ..mesh import vertex_normals, voronoi_areas
+from ..reference.skin import locate, project_contacts
 from .muscles import LinearMuscle, muscle_weights
 from .system import LINEAR, MANDIBLE, SKULL, SPHINCTER, SkinArrays, rim_edges
 
@@ -110,12 +112,11 @@ class SkinMaterial:
     contact_stiffness: float = 2.0
 
     def __post_init__(self):
-        for item in fields(self):
-            value = getattr(self, item.name)
-            allow_zero = item.name in ("drag", "contact_margin_mm", "contact_stiffness", "knee_strain",
-                                       "damping_ratio", "flexion")
-            object.__setattr__(self, item.name, as_positive(value, f"SkinMaterial.{item.name}",
-                                                            allow_zero=allow_zero))
+        check_options(self, positive=("skin_modulus_kpa", "skin_thickness_mm", "dermal_modulus_kpa",
+                                      "hypodermal_modulus_kpa", "anchor_modulus_kpa", "dermal_depth",
+                                      "hypodermal_depth", "stiffening", "density_g_mm3"),
+                      non_negative=("knee_strain", "damping_ratio", "drag", "flexion", "contact_margin_mm",
+                                    "contact_stiffness"))
         if not 0 < self.dermal_depth < self.hypodermal_depth < 1:
             raise ValueError("SkinMaterial: need 0 < dermal_depth < hypodermal_depth < 1, got "
                              f"{self.dermal_depth} and {self.hypodermal_depth}")
@@ -184,8 +185,6 @@ def _flexion_pairs(faces: np.ndarray, n: int):
 
 def _two_ring_faces(faces: np.ndarray, n: int, indptr: np.ndarray, neighbours: np.ndarray):
     """CSR list, per vertex, of the triangles touching it or its neighbours, sorted."""
-    import scipy.sparse as sp
-
     incidence = sp.csr_matrix((np.ones(faces.size), (np.repeat(np.arange(len(faces)), 3), faces.reshape(-1))),
                               shape=(len(faces), n))
     adjacency = sp.csr_matrix((np.ones(len(neighbours)), neighbours, indptr), shape=(n, n))
@@ -361,9 +360,8 @@ def build_layers(head, material: SkinMaterial = SkinMaterial()) -> SkinLayers:
     # its zone starts at half its rest height.
     # Heights are taken from each particle's nearest skull vertex, where the contact
     # search starts (a column's own skull vertex is not always the nearest: the rays
-    # toward the head's centre are oblique to the skull at the sides).
-    from ..reference.skin import locate, project_contacts
-
+    # toward the head's centre are oblique to the skull at the sides). The NumPy
+    # reference does it: a one-time setup, before the compiled system exists.
     checked = arrays.validated()
     foot = project_contacts(checked, rest, np.zeros_like(rest), checked.particle_foot, 0.0)[2]
     height, _, _ = locate(checked, rest, foot)

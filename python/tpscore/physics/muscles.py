@@ -39,6 +39,8 @@ import numpy as np
 
 from .._validation import as_positive
 from ..face.landmarks import anchor_point, landmark_index, validate_anchor
+from ..face.normalise import face_frame
+from ..spatial import MeshSurface
 
 __all__ = [
     "SurfacePoint",
@@ -320,9 +322,6 @@ def place_muscles(vertices, faces, skull_vertices, landmarks, definitions=None) 
     -------
     tuple of LinearMuscle and SphincterMuscle
     """
-    from ..face.normalise import face_frame
-    from ..spatial import MeshSurface
-
     data = read_muscle_file() if definitions is None else definitions
     frame = face_frame(landmarks)
     skin = MeshSurface(vertices, faces)

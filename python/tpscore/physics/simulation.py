@@ -32,17 +32,21 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Mapping
 
 import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
-from .._validation import as_positive
+from .._validation import as_positive, check_options
 from ..mesh import face_normals
+from ..reference.skin import damping_matrix, stiffness_matrix
+from .head import Head
 from .layers import SkinLayers, SkinMaterial, build_layers
 from .system import INTEGRATORS
 
-__all__ = ["SkinModel", "SkinSimulation", "SkinWarning", "SimulationError", "MAX_JAW_DEG"]
+__all__ = ["SkinModel", "SimulationOptions", "SkinSimulation", "SkinWarning", "SimulationError", "MAX_JAW_DEG"]
 
 #: The largest jaw angle accepted (degrees): a wide-open human mouth is about 30.
 MAX_JAW_DEG = 30.0
@@ -67,6 +71,55 @@ class SkinWarning(UserWarning):
 
 class SimulationError(RuntimeError):
     """A simulation diverged even at the smallest step tried."""
+
+
+@dataclass(frozen=True)
+class SimulationOptions:
+    """How :meth:`SkinModel.simulate` runs: the integrator, its step, the ramp, and when
+    the skin counts as settled.
+
+    Attributes
+    ----------
+    integrator : {"symplectic", "implicit"}
+        Semi-implicit Euler (cheap steps, stable below :attr:`SkinModel.stable_step`) or
+        linearised backward Euler (a sparse factorisation per step, stable at large
+        steps); see the module notes.
+    dt : float or None
+        Step (s). None: :attr:`SkinModel.stable_step` semi-implicit, 2 ms implicit. A
+        semi-implicit step above :attr:`SkinModel.stable_step` is split into stable
+        sub-steps with a :class:`SkinWarning`.
+    ramp_time : float
+        Time (s) over which the contractions and the jaw rise smoothly (smoothstep) from
+        rest to their targets; 0 applies them at once.
+    max_time : float
+        Simulated time (s) after which the run stops even if the skin has not settled
+        (with a :class:`SkinWarning`).
+    frames : int
+        About how many animation frames to keep (>= 2), from rest to the settled skin.
+    velocity_tolerance : float
+        Rest: every particle slower than this (mm/s) ...
+    force_tolerance : float
+        ... and its net force (less what the skull bears) smaller than what would move
+        it this far (mm) against its own stiffness at rest, for three tests running.
+    """
+
+    integrator: str = "symplectic"
+    dt: float | None = None
+    ramp_time: float = 0.03
+    max_time: float = 0.5
+    frames: int = 24
+    velocity_tolerance: float = 1.0
+    force_tolerance: float = 2e-3
+
+    def __post_init__(self):
+        check_options(self, positive=("max_time", "velocity_tolerance", "force_tolerance"),
+                      non_negative=("ramp_time",), counts=(("frames", 2),),
+                      choices={"integrator": tuple(INTEGRATORS)})
+        if self.dt is not None:
+            as_positive(self.dt, "SimulationOptions.dt")
+            if self.dt > self.max_time:
+                raise ValueError(f"SimulationOptions.dt ({self.dt:g} s) must not exceed max_time "
+                                 f"({self.max_time:g} s)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -127,9 +180,6 @@ class SkinSimulation:
 
 def _largest_eigenvalue(matrix, masses: np.ndarray) -> float:
     """Largest eigenvalue of M^-1 A for symmetric A (3n x 3n) and masses (n,)."""
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as spla
-
     scale = sp.diags(np.repeat(1.0 / np.sqrt(masses), 3))
     symmetric = (scale @ matrix @ scale).tocsr()
     symmetric.eliminate_zeros()
@@ -149,7 +199,8 @@ class SkinModel:
     ----------
     head : tpscore.physics.Head
         The skin mesh with its skull, regions, jaw and muscles.
-    material : SkinMaterial, optional
+    material : SkinMaterial
+        The tissue's mechanical parameters (default: adult facial soft tissue).
 
     Examples
     --------
@@ -160,12 +211,9 @@ class SkinModel:
     (2571, 3)
     """
 
-    def __init__(self, head, material: SkinMaterial | None = None):
-        from .head import Head
-
+    def __init__(self, head: Head, material: SkinMaterial = SkinMaterial()):
         if not isinstance(head, Head):
             raise ValueError(f"head must be a tpscore.physics.Head, got {type(head).__name__}")
-        material = SkinMaterial() if material is None else material
         if not isinstance(material, SkinMaterial):
             raise ValueError(f"material must be a SkinMaterial, got {type(material).__name__}")
         self._head = head
@@ -212,10 +260,8 @@ class SkinModel:
         times 0.9.
         """
         if self._stable_step is None:
-            from dataclasses import replace
-
-            from ..reference.skin import damping_matrix, stiffness_matrix
-
+            # The matrices are assembled once per model, by the NumPy reference: a setup
+            # cost next to a simulation, and the reference is the definition of K and D.
             arrays = self._layers.arrays
             stiff = replace(arrays, spring_stiffness=arrays.spring_stiffness_high)
             # with the contact penalty everywhere: any particle may touch the skull
@@ -226,8 +272,6 @@ class SkinModel:
         return self._stable_step
 
     def _contact_everywhere(self):
-        import scipy.sparse as sp
-
         arrays = self._layers.arrays
         normals = arrays.skull_normals[arrays.particle_foot]
         blocks = arrays.contact_stiffness[:, None, None] * np.einsum("si,sj->sij", normals, normals)
@@ -281,25 +325,24 @@ class SkinModel:
         return folded + crossed
 
     # ------------------------------------------------------------------ running
-    def _run(self, vector, jaw_rad, integrator, dt, ramp_time, max_steps, record_every,
-             velocity_tolerance, force_tolerance):
+    def _run(self, vector, jaw_rad, options: SimulationOptions, dt, max_steps, record_every):
         rest = self._layers.rest
         zeros = np.zeros_like(rest)
         foot = self._layers.arrays.particle_foot
         # the rest test costs a force evaluation: every step for the implicit integrators,
         # about every half millisecond of simulated time for the cheap explicit steps
-        check_every = 1 if integrator != "symplectic" else max(1, int(round(5e-4 / dt)))
-        out = self._system.run(rest, zeros, foot, vector, jaw_rad, INTEGRATORS[integrator], dt, int(max_steps),
-                               ramp_time, velocity_tolerance, force_tolerance, 3, check_every,
-                               _DIVERGENCE_MM, int(record_every), len(self._head.vertices))
+        check_every = 1 if options.integrator != "symplectic" else max(1, int(round(5e-4 / dt)))
+        out = self._system.run(rest, zeros, foot, vector, jaw_rad, INTEGRATORS[options.integrator], dt,
+                               int(max_steps), options.ramp_time, options.velocity_tolerance,
+                               options.force_tolerance, 3, check_every, _DIVERGENCE_MM, int(record_every),
+                               len(self._head.vertices))
         positions, _, _, steps, settled, diverged, sim_time, speed, residual, times, frames = out
         return dict(positions=positions, steps=int(steps), settled=bool(settled), diverged=bool(diverged),
                     time=float(sim_time), max_speed=float(speed), max_residual=float(residual), times=times,
                     frames=frames.reshape(len(times), len(self._head.vertices), 3))
 
-    def simulate(self, contractions=None, jaw: float = 0.0, *, integrator: str = "symplectic", dt: float | None = None,
-                 ramp_time: float = 0.03, max_time: float = 0.5, frames: int = 24,
-                 velocity_tolerance: float = 1.0, force_tolerance: float = 2e-3) -> SkinSimulation:
+    def simulate(self, contractions=None, jaw: float = 0.0, *,
+                 options: SimulationOptions = SimulationOptions()) -> SkinSimulation:
         """Contract the muscles and open the jaw, and let the skin settle.
 
         Parameters
@@ -309,22 +352,8 @@ class SkinModel:
             :meth:`Head.contractions_for` for AU intensities.
         jaw : float
             Jaw opening angle (degrees) in [0, 30].
-        integrator : {"symplectic", "implicit"}
-        dt : float, optional
-            Step (s). Default: :attr:`stable_step` semi-implicit, 2 ms implicit. A
-            semi-implicit step above :attr:`stable_step` is split into sub-steps.
-        ramp_time : float
-            Time (s) over which the controls rise smoothly from rest to their targets.
-        max_time : float
-            Simulated time (s) after which the run stops even if not settled (with a
-            warning).
-        frames : int
-            About how many animation frames to keep (>= 2).
-        velocity_tolerance : float
-            Rest: every particle slower than this (mm/s).
-        force_tolerance : float
-            Rest: every particle's net force smaller than what would move it this far at
-            rest (mm).
+        options : SimulationOptions
+            The integrator, its step, the ramp and the rest test.
 
         Returns
         -------
@@ -333,7 +362,7 @@ class SkinModel:
         Raises
         ------
         ValueError
-            For contractions, jaw or settings out of range (the message names which).
+            For contractions, jaw or options out of range (the message names which).
         SimulationError
             If the run diverges even at an eighth of the step.
         """
@@ -344,32 +373,23 @@ class SkinModel:
             raise ValueError(f"jaw must be an angle in degrees, got {jaw!r}") from None
         if not np.isfinite(jaw_deg) or not 0.0 <= jaw_deg <= MAX_JAW_DEG:
             raise ValueError(f"jaw must be an opening angle in [0, {MAX_JAW_DEG:g}] degrees, got {jaw!r}")
-        if integrator not in INTEGRATORS:
-            raise ValueError(f"integrator must be one of {', '.join(INTEGRATORS)}, got {integrator!r}")
-        ramp_time = as_positive(ramp_time, "ramp_time", allow_zero=True)
-        max_time = as_positive(max_time, "max_time")
-        velocity_tolerance = as_positive(velocity_tolerance, "velocity_tolerance")
-        force_tolerance = as_positive(force_tolerance, "force_tolerance")
-        if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 2:
-            raise ValueError(f"frames must be an integer >= 2, got {frames!r}")
+        if not isinstance(options, SimulationOptions):
+            raise ValueError(f"options must be a SimulationOptions, got {type(options).__name__}")
+        dt = options.dt
         if dt is None:
-            dt = self.stable_step if integrator == "symplectic" else _DEFAULT_IMPLICIT_DT
-        dt = as_positive(dt, "dt")
-        if integrator == "symplectic" and dt > self.stable_step:
+            dt = self.stable_step if options.integrator == "symplectic" else _DEFAULT_IMPLICIT_DT
+        if options.integrator == "symplectic" and dt > self.stable_step:
             substeps = math.ceil(dt / self.stable_step)
             warnings.warn(f"dt = {dt:.3g} s is above the semi-implicit integrator's stable step "
                           f"({self.stable_step:.3g} s); stepping at dt / {substeps} = {dt / substeps:.3g} s",
                           SkinWarning, stacklevel=2)
             dt = dt / substeps
-        if dt > max_time:
-            raise ValueError(f"dt ({dt:g} s) must not exceed max_time ({max_time:g} s)")
 
         start = time.perf_counter()
         scale = 1.0
         scales = iter(_CLAMP_SCALES)
         while True:
-            result = self._settle(scale * vector, math.radians(scale * jaw_deg), integrator, dt, ramp_time,
-                                  max_time, frames, velocity_tolerance, force_tolerance)
+            result = self._settle(scale * vector, math.radians(scale * jaw_deg), options, dt)
             if self.inverted(result["positions"]) == 0:
                 break
             try:
@@ -381,7 +401,7 @@ class SkinModel:
             warnings.warn(f"contractions and jaw invert skin elements; scaled by {scale:g} to keep them upright",
                           SkinWarning, stacklevel=2)
         if not result["settled"]:
-            warnings.warn(f"the skin did not settle within max_time = {max_time:g} s (largest speed "
+            warnings.warn(f"the skin did not settle within max_time = {options.max_time:g} s (largest speed "
                           f"{result['max_speed']:.3g} mm/s, force residual {result['max_residual']:.3g} mm); "
                           "the result is the last state", SkinWarning, stacklevel=2)
         seconds = time.perf_counter() - start
@@ -392,23 +412,21 @@ class SkinModel:
         used = {name: float(scale * v) for name, v in zip(self.muscle_names, vector) if v > 0}
         # The run records at a fixed interval without knowing when it will settle: keep
         # about `frames` of them, evenly spread, the first and the last included.
-        keep = np.unique(np.round(np.linspace(0, len(result["times"]) - 1, frames)).astype(int))
+        keep = np.unique(np.round(np.linspace(0, len(result["times"]) - 1, options.frames)).astype(int))
         return SkinSimulation(
             vertices=positions[:n].copy(), layers=positions, times=result["times"][keep],
             frames=result["frames"][keep],
             contractions=used, jaw_deg=scale * jaw_deg, scale=scale, settled=result["settled"],
-            steps=result["steps"], simulated_time=result["time"], dt=result["dt"], integrator=integrator,
+            steps=result["steps"], simulated_time=result["time"], dt=result["dt"], integrator=options.integrator,
             seconds=seconds, max_speed=result["max_speed"], max_residual=result["max_residual"])
 
-    def _settle(self, vector, jaw_rad, integrator, dt, ramp_time, max_time, frames, velocity_tolerance,
-                force_tolerance):
+    def _settle(self, vector, jaw_rad, options: SimulationOptions, dt: float):
         """One run, repeated at half the step while it diverges."""
         for attempt in range(_RETRIES + 1):
-            max_steps = int(math.ceil(max_time / dt))
-            expected = (ramp_time + 0.02) / dt
-            record_every = max(1, int(round(expected / frames)))
-            result = self._run(vector, jaw_rad, integrator, dt, ramp_time, max_steps, record_every,
-                               velocity_tolerance, force_tolerance)
+            max_steps = int(math.ceil(options.max_time / dt))
+            expected = (options.ramp_time + 0.02) / dt
+            record_every = max(1, int(round(expected / options.frames)))
+            result = self._run(vector, jaw_rad, options, dt, max_steps, record_every)
             if not result["diverged"]:
                 result["dt"] = dt
                 return result

@@ -13,6 +13,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from .spatial import closest_point_on_triangles
+
 __all__ = [
     "SKULL",
     "MANDIBLE",
@@ -94,8 +96,6 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
     no such triangle exists. Where the closest point lies on the skull's rim, the skull
     continues as the rim triangle's plane.
     """
-    from .spatial import closest_point_on_triangles
-
     skull, normals, face_normals = _skull_at(arrays, jaw_angle) if geometry is None else geometry
     points = np.asarray(points, dtype=np.float64)
     foot = np.asarray(foot, dtype=np.int64)
