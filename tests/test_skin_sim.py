@@ -46,6 +46,23 @@ def test_forces_and_energy_match_the_reference(system):
     assert core.kinetic_energy(v) == pytest.approx(reference.kinetic_energy(arrays, v), rel=1e-14)
 
 
+def test_free_forces_match_the_reference(system):
+    # What the rest detector tests: the net force less what the skull bears. Particles
+    # projected onto the skull (their inward force removed) and particles above it.
+    arrays, core, x, v = system
+    contractions = np.array([0.8, 0.3])
+    inside = x.copy()
+    inside[:, 2] -= 1.5
+    x_on, v_on, foot = reference.project_contacts(arrays, inside, v, arrays.particle_foot, 0.2)
+    height, _, _ = reference.locate(arrays, x_on, foot, 0.2)
+    assert np.any(np.abs(height) <= 1e-9) and np.any(height > 1e-3)  # both kinds present
+    expected = reference.free_forces(arrays, x_on, v_on, foot, contractions, 0.2)
+    got = core.free_forces(x_on, v_on, foot, contractions, 0.2)
+    full = reference.forces(arrays, x_on, v_on, contractions, 0.2, foot)
+    assert not np.allclose(expected, full)  # the skull bears something
+    assert np.abs(got - expected).max() < 1e-12 * np.abs(expected).max()
+
+
 @pytest.mark.parametrize("integrator", list(INTEGRATORS))
 def test_steps_match_the_reference(system, integrator):
     arrays, core, x, v = system
