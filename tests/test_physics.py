@@ -61,6 +61,26 @@ def test_template_has_the_muscle_set_and_a_skull_under_the_skin(template):
     assert template.mandible[lower] and not template.mandible[upper]
 
 
+def test_the_muscle_set_is_mirror_symmetric(template):
+    # The template is symmetric about x = 0 (vertex for vertex), so each left muscle's
+    # attachment and insertion must be the mirror images of the right one's, and a
+    # midline muscle must lie on the midline: a symmetric AU then pulls both sides alike.
+    mirror = np.array([-1.0, 1.0, 1.0])
+    distance, _ = tpscore.KDTree(template.vertices).query(template.vertices * mirror)
+    assert np.max(distance) < 1e-9
+    for muscle in template.muscles:
+        if muscle.name.endswith("_right"):
+            continue
+        other = template.muscle(muscle.name.replace("_left", "_right"))
+        if muscle.kind == "linear":
+            for a, b, surface in ((muscle.attachment, other.attachment, template.skull_vertices),
+                                  (muscle.insertion, other.insertion, template.vertices)):
+                assert np.allclose(a.position(surface, template.faces) * mirror,
+                                   b.position(surface, template.faces), atol=1e-6), muscle.name
+        else:
+            assert np.allclose(muscle.epicentre * mirror, muscle.epicentre, atol=1e-6)
+
+
 def test_contractions_for_action_units(template):
     smile = template.contractions_for({"12": 0.5})
     assert smile == {"zygomaticus_major_left": 0.5, "zygomaticus_major_right": 0.5}
