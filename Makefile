@@ -32,8 +32,9 @@ bench: install
 	$(PY) -m pytest benchmarks -q -p no:cacheprovider -o python_files="bench_*.py" --benchmark-columns=min,median,mean,rounds --benchmark-sort=name
 	$(PY) benchmarks/fidelity.py $(FIDELITY_ARGS)
 
-# The physical skin's stability sweep and fidelity benchmark (about an hour on two
-# cores; the fidelity part skips without ../shared): bench-output/skin_*.md.
+# The physical skin's stability sweep and fidelity benchmark (about an hour and a half
+# on a shared two-core machine; the fidelity part skips without ../shared):
+# bench-output/skin_*.md, recorded in benchmarks/SKIN.md.
 bench-skin: install
 	$(PY) benchmarks/skin_stability.py
 	$(PY) benchmarks/skin_fidelity.py $(SKIN_FIDELITY_ARGS)

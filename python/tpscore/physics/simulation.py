@@ -16,10 +16,11 @@ Two integrators:
   penalty everywhere) and M^-1 D; a larger ``dt`` is cut into sub-steps with a
   warning, so any step a user picks runs stably.
 - ``"implicit"``: linearised backward Euler; each step solves
-  (M + dt D + dt^2 K) dv = dt (f - dt K v) with the core's sparse LDL^T (the pattern
-  analysed once per model, the factor computed every step). Stable at large steps,
-  but each step is a sparse factorisation: on the 2,600-vertex template it costs about
-  as much as a thousand semi-implicit steps (see benchmarks/SKIN.md).
+  (M + dt D + dt^2 K) dv = dt (f - dt K v) with the core's sparse Cholesky (the
+  pattern analysed once per model, the factor computed every step). Stable at large
+  steps, but each step is a sparse factorisation: on the 2,571-vertex template it
+  costs about 80 semi-implicit steps, and a smile settles some 15 times slower in
+  wall time (see benchmarks/SKIN.md).
 
 What is refused or clamped: contractions outside [0, 1] or for unknown muscles and a
 jaw angle outside [0, 30] degrees raise ValueError; contractions that would invert
