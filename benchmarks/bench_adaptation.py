@@ -67,10 +67,8 @@ VARIANTS = {
     "interpolate: global RBF only": dict(refinement="interpolate", rho=10.0, dense_threshold=10**9, levels=4),
     "interpolate: CSRBF only": dict(refinement="interpolate", rho=10.0, dense_threshold=0),
     "interpolate: multilevel (previous defaults)": dict(refinement="interpolate", rho=10.0),
-    "surface, biharmonic fill, lambda 10 (round-2 defaults)": dict(regularisation=10.0, fill_order=2, snap=False),
     "surface, no snap, no fill": dict(snap=False, fill_unseen=False),
     "surface + harmonic fill, no snap": dict(snap=False),
-    "surface + shape matching 0.3 + snap + fill": dict(shape_match_weight=0.3),
     "surface + snap + harmonic fill (defaults)": dict(),
 }
 DEFAULT = "surface + snap + harmonic fill (defaults)"

@@ -147,7 +147,7 @@ def test_affine_copy_is_near_exact():
     assert result.vertices.shape == vertices.shape
     # the mesh fill of unpaired vertices does not reproduce a linear field on a curved
     # surface exactly; for this 5% shear it moves them by a fraction of a millimetre
-    # (about 0.33 mm at most with the default harmonic fill, 0.26 mm with the biharmonic one)
+    # (about 0.33 mm at most with the harmonic fill)
     error = np.linalg.norm(filled.vertices - moved, axis=1)
     assert error.max() < 0.4, error.max()
     assert np.sqrt(np.mean(error**2)) < 0.05
@@ -223,9 +223,6 @@ def test_adapt_faces_improves_on_landmark_rbf():
     unsnapped, _, _ = _adapt_faces(levels=5, stop_at_minimum=False, snap=False)
     assert _scan_distance(result) < 0.8 * _scan_distance(unsnapped), (_scan_distance(result),
                                                                      _scan_distance(unsnapped))
-    matched, _, _ = _adapt_faces(levels=5, stop_at_minimum=False, shape_match_weight=0.3)
-    errors = [lv.distance_error for lv in matched.levels]
-    assert min(errors[1:]) < 0.7 * errors[0]
 
 
 def test_defective_noise_warns():
@@ -419,92 +416,34 @@ def test_fill_unseen_offsets_reproduces_a_linear_field_on_a_flat_mesh():
     anchored = np.linalg.norm(vertices[:, :2], axis=1) > 4.0  # a hole in the middle
     start = np.where(anchored[:, None], linear, 0.0)
     filled = fill_unseen_offsets(vertices, faces, start, anchored)
-    # cotangent Laplacian of a linear function vanishes on a flat mesh: the biharmonic
+    # cotangent Laplacian of a linear function vanishes on a flat mesh: the harmonic
     # fill is exact up to the solver's rounding (and the 1e-9 regularising diagonal)
     assert np.allclose(filled, linear, atol=1e-6)
     assert np.array_equal(filled[anchored], linear[anchored])
-    # the harmonic fill (the default of adapt) is exact on a flat mesh for the same reason
-    harmonic = fill_unseen_offsets(vertices, faces, start, anchored, order=1)
-    assert np.allclose(harmonic, linear, atol=1e-6)
 
 
 def test_fill_unseen_offsets_harmonic_stays_within_the_rim_values():
     from tpscore.adaptation import fill_unseen_offsets
 
-    # a bumpy rim: the harmonic fill obeys the maximum principle, the biharmonic one
-    # may overshoot (which is why adapt fills harmonically by default)
+    # a bumpy rim: the harmonic fill obeys the maximum principle (a biharmonic one may
+    # overshoot, which is why adapt fills harmonically)
     vertices, faces = _grid_mesh(lambda x, y: 0.0 * x, half=10.0, spacing=1.0)
     angle = np.arctan2(vertices[:, 1], vertices[:, 0])
     values = np.stack([np.sin(3 * angle), np.cos(2 * angle), 0.5 * np.sin(angle)], axis=1)
     anchored = np.linalg.norm(vertices[:, :2], axis=1) > 5.0
     start = np.where(anchored[:, None], values, 0.0)
-    filled = fill_unseen_offsets(vertices, faces, start, anchored, order=1)
+    filled = fill_unseen_offsets(vertices, faces, start, anchored)
     rim = values[anchored]
     # 1e-9: the regularising diagonal and the solver's rounding
     assert np.all(filled[~anchored] <= rim.max(axis=0) + 1e-9)
     assert np.all(filled[~anchored] >= rim.min(axis=0) - 1e-9)
 
 
-def _bump_surface(shift=0.0, spacing=0.5):
-    # a Gaussian bump (height 6 mm, width 4 mm) on a plane, apex at x = shift
-    return _grid_mesh(lambda x, y: 6.0 * np.exp(-((x - shift) ** 2 + y**2) / (2 * 4.0**2)), half=20.0,
-                      spacing=spacing)
-
-
-def test_shape_descriptor_sign_and_scale():
-    from tpscore.correspondence import shape_descriptor
-    from tpscore.mesh import vertex_normals, voronoi_areas
-
-    vertices, faces = _bump_surface()
-    normals = vertex_normals(vertices, faces)
-    apex = np.argmax(vertices[:, 2])
-    flat = np.argmin(np.linalg.norm(vertices[:, :2] - [17.0, 17.0], axis=1))
-    d = shape_descriptor(vertices[[apex, flat]], normals[[apex, flat]], vertices, voronoi_areas(vertices, faces),
-                         (3.0, 6.0))
-    # the bump falls away from its tangent plane at the apex: negative at both scales;
-    # on the flat corner the surface lies in the tangent plane (up to the bump's far tail)
-    assert np.all(d[0] < -0.01), d
-    assert np.all(np.abs(d[1]) < 1e-3), d
-    # a coarse sampling of the same surface gives about the same values (area weights)
-    coarse_v, coarse_f = _bump_surface(spacing=1.5)
-    d_coarse = shape_descriptor(vertices[[apex]], normals[[apex]], coarse_v, voronoi_areas(coarse_v, coarse_f),
-                                (3.0, 6.0))
-    assert np.allclose(d_coarse[0], d[0], rtol=0.25), (d_coarse, d)
-
-
-def test_match_shape_features_slides_onto_the_shifted_bump():
-    from tpscore.correspondence import match_shape_features, shape_descriptor
-    from tpscore.mesh import vertex_normals, voronoi_areas
-
-    template, t_faces = _bump_surface()
-    scan, s_faces = _bump_surface(shift=1.5)
-    radii = (3.0, 6.0)
-    apex = np.argmax(template[:, 2])
-    t_normals = vertex_normals(template, t_faces)
-    s_normals = vertex_normals(scan, s_faces)
-    descriptor = shape_descriptor(template[[apex]], t_normals[[apex]], template,
-                                  voronoi_areas(template, t_faces), radii)
-    scan_descriptor = shape_descriptor(scan, s_normals, scan, voronoi_areas(scan, s_faces), radii)
-    partner = template[[apex]] + [0.0, 0.0, 0.0]  # the closest point is about under the template's apex
-    partner[0, 2] = 6.0 * np.exp(-(1.5**2) / (2 * 4.0**2))
-    normal = s_normals[[np.argmin(np.linalg.norm(scan - partner, axis=1))]]
-    targets, confidence = match_shape_features(descriptor, partner, normal, scan, scan_descriptor, radius=3.0,
-                                               scale=np.nanstd(scan_descriptor, axis=0) * 0.2)
-    # the matched point moves most of the 1.5 mm toward the scan's apex (soft-min and
-    # the pull toward the partner keep it short of the full shift), and only sideways
-    moved = targets[0] - partner[0]
-    assert 0.75 < moved[0] < 1.75, moved
-    assert abs(moved[1]) < 0.25, moved
-    assert abs(moved @ normal[0]) < 1e-9
-    assert confidence[0] > 0.5
-
-
 def test_surface_refinement_arguments():
     _, grid = _face(0)
     vertices, faces, index = _template_from(grid)
     for bad in (dict(refinement="nearest"), dict(regularisation=0.0), dict(landmark_weight=-1.0),
-                dict(surface_iterations=0), dict(centre_spacing=np.nan), dict(fill_order=3),
-                dict(fill_blend=1.5), dict(fill_base="scan"), dict(shape_match_weight=-1.0)):
+                dict(surface_iterations=0), dict(centre_spacing=np.nan)):
         name = next(iter(bad))
         with pytest.raises(ValueError, match=name):
             adapt((vertices, faces), (vertices, faces), index, vertices[index], **bad)

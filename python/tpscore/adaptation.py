@@ -41,12 +41,11 @@ import numpy as np
 
 from ._validation import as_faces, as_points
 from .calibration import calibrate
-from .correspondence import (FeatureMesh, ScanTarget, curvature_features, match_shape_features, self_occluded,
-                             shape_descriptor, spread_vertices)
+from .correspondence import FeatureMesh, ScanTarget, curvature_features, self_occluded, spread_vertices
 from .csrbf import CSRBF, ConvergenceError, wendland
 from .fit_error import combined_error, distance_error, marker_error, surface_noise
 from .face.landmarks import N_LANDMARKS, landmark_index
-from .mesh import vertex_normals, voronoi_areas
+from .mesh import vertex_normals
 from .face.normalise import FrameTransform, similarity_transform
 from .rbf import RBF
 from .spatial import KDTree, MeshSurface
@@ -262,14 +261,14 @@ class SurfaceOffset:
 
 
 def fit_surface_offset(field: SurfaceOffset, template_points, current, targets, scan_normals, *,
-                       weights=None, point_weight: float = 0.0, landmark_template=None,
+                       landmark_template=None,
                        landmark_current=None, landmark_targets=None, landmark_weight: float = 1.0,
                        regularisation: float = 1.0) -> np.ndarray:
     """Coefficients of the offset that best moves the current fit onto the scan.
 
     Minimises, over the coefficients c (n, 3) of `field`'s basis,
 
-        sum_i w_i (m_i . (x_i + o(p_i) - q_i))^2 + point_weight sum_i w_i |x_i + o(p_i) - q_i|^2
+        sum_i (m_i . (x_i + o(p_i) - q_i))^2
         + landmark_weight sum_l |x_l + o(p_l) - q_l|^2 + regularisation c^T Phi c
 
     (Phi: the centres' kernel matrix, so the last term is the field's native norm).
@@ -288,11 +287,6 @@ def fit_surface_offset(field: SurfaceOffset, template_points, current, targets, 
         p_i, template frame (mm).
     current, targets, scan_normals : (m, 3) ndarray
         x_i (the fit so far at p_i), q_i (scan partners) and unit m_i.
-    weights : (m,) ndarray, optional
-        w_i (default 1).
-    point_weight : float
-        eta, the weak point-to-point term (it keeps the sliding small where the
-        surface does not fix it).
     landmark_template, landmark_current, landmark_targets : (k, 3) ndarray, optional
         Feature points: template position, current fit and scan position.
     landmark_weight : float
@@ -309,17 +303,13 @@ def fit_surface_offset(field: SurfaceOffset, template_points, current, targets, 
 
     n = len(field.centres)
     phi = field.matrix(template_points)
-    w = np.ones(len(template_points)) if weights is None else np.asarray(weights, dtype=np.float64)
     residual = np.einsum("ij,ij->i", scan_normals, targets - current)
     blocks = [[None] * 3 for _ in range(3)]
     rhs = np.zeros(3 * n)
-    gap = targets - current
     for a in range(3):
-        rhs[a * n:(a + 1) * n] = phi.T @ (w * (scan_normals[:, a] * residual + point_weight * gap[:, a]))
+        rhs[a * n:(a + 1) * n] = phi.T @ (scan_normals[:, a] * residual)
         for b in range(a, 3):
-            diagonal = w * scan_normals[:, a] * scan_normals[:, b]
-            if a == b:
-                diagonal = diagonal + point_weight * w
+            diagonal = scan_normals[:, a] * scan_normals[:, b]
             block = (phi.T @ sp.diags(diagonal) @ phi).tocsr()
             blocks[a][b] = block
             if b != a:
@@ -344,8 +334,7 @@ def fit_surface_offset(field: SurfaceOffset, template_points, current, targets, 
     return solution.reshape(3, n).T.copy()
 
 
-def fill_unseen_offsets(template_vertices, template_faces, offsets, anchored, *, order: int = 2,
-                        cotangent: bool = True) -> np.ndarray:
+def fill_unseen_offsets(template_vertices, template_faces, offsets, anchored) -> np.ndarray:
     """Offsets over the template with the unanchored vertices filled in along the mesh.
 
     The refinement levels know the scan only where the template was paired with it.
@@ -353,8 +342,8 @@ def fill_unseen_offsets(template_vertices, template_faces, offsets, anchored, *,
     the nose) are close in space to paired vertices of other parts of the face (the
     upper lip, the ala), so a field over 3D space hands them those parts' offsets.
     Along the mesh they are connected to their own rims instead: here their offsets
-    are the (bi)harmonic interpolation of the anchored vertices' offsets, minimising
-    ``|L d|^2`` (order 2) or ``d^T (-L) d`` (order 1) with the anchored offsets fixed.
+    are the harmonic interpolation of the anchored vertices' offsets, minimising
+    ``d^T (-L) d`` (L: the cotangent Laplacian) with the anchored offsets fixed.
 
     Parameters
     ----------
@@ -365,10 +354,6 @@ def fill_unseen_offsets(template_vertices, template_faces, offsets, anchored, *,
         Current offsets (mm); kept at the anchored vertices.
     anchored : (n,) bool
         Vertices whose offsets the scan determined.
-    order : {1, 2}
-        Harmonic (1) or biharmonic (2) fill.
-    cotangent : bool
-        Cotangent weights (True) or uniform (graph) weights.
 
     Returns
     -------
@@ -386,17 +371,7 @@ def fill_unseen_offsets(template_vertices, template_faces, offsets, anchored, *,
     free &= used
     if not free.any() or not anchored.any():
         return offsets
-    if cotangent:
-        laplacian = cotan_laplacian(template_vertices, template_faces)
-    else:
-        edges = np.concatenate([template_faces[:, [0, 1]], template_faces[:, [1, 2]], template_faces[:, [2, 0]]])
-        edges = np.unique(np.sort(edges, axis=1), axis=0)
-        ones = np.ones(len(edges))
-        adjacency = sp.coo_matrix((np.r_[ones, ones], (np.r_[edges[:, 0], edges[:, 1]],
-                                                        np.r_[edges[:, 1], edges[:, 0]])), shape=(n, n)).tocsr()
-        laplacian = adjacency - sp.diags(np.asarray(adjacency.sum(axis=1)).ravel())
-    operator = (laplacian.T @ laplacian) if order == 2 else -laplacian
-    operator = operator.tocsr()
+    operator = (-cotan_laplacian(template_vertices, template_faces)).tocsr()
     free_rows = np.flatnonzero(free)
     fixed_rows = np.flatnonzero(~free)
     a_ff = operator[free_rows][:, free_rows].tocsc()
@@ -472,11 +447,8 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
           distance_threshold: float | None = None, vertex_weights=None, rigid_parts=None,
           scan_view=(0.0, 0.0, 1.0), outlier_threshold: float = 15.0, stop_at_minimum: bool = True,
           noise_warning_mm: float = 0.6, refinement: str = "surface", surface_iterations: int = 2,
-          regularisation: float = 5.0, point_weight: float = 0.0, landmark_weight: float = 0.3,
+          regularisation: float = 5.0, landmark_weight: float = 0.3,
           centre_spacing: float = 1.0 / 3.0, min_support: float | None = None, fill_unseen: bool = True,
-          shape_match_weight: float = 0.0, shape_match_radius: float = 3.0, shape_radii=(5.0, 10.0),
-          shape_scale: float = 1.0, fill_blend: float = 1.0, fill_order: int = 1, fill_margin: int = 0,
-          fill_cotangent: bool = True, fill_base: str = "none", incidence_power: float = 0.0,
           snap: bool = True, snap_rings: int = 1,
           progress: Callable[[AdaptLevel], None] | None = None) -> AdaptResult:
     """Fit a template mesh to a scan with a global RBF and multilevel CSRBF.
@@ -572,8 +544,6 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
         lambda of the ``"surface"`` levels (weight of the offset's native norm,
         relative to one surface pair), > 0. With the harmonic fill, 3, 5 and 7 measured 1.133,
         1.132 and 1.136 mm on the tuning subjects, 10 gave 1.143 and 20 1.177.
-    point_weight : float
-        Weight of a point-to-point term on the surface pairs (0: point to plane only).
     landmark_weight : float
         Weight of each feature point in the ``"surface"`` levels, in surface pairs.
         Small: the feature points carry about 1 mm of annotation error, which level
@@ -588,28 +558,10 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
         After a ``"surface"`` fit, replace the displacement of template vertices
         that were never paired (the scanner could not see them: inside the
         nostrils, between the lips, under the nose; or over holes) by the
-        biharmonic interpolation along the template mesh of the paired vertices'
+        harmonic interpolation along the template mesh of the paired vertices'
         displacements (:func:`fill_unseen_offsets`). :meth:`AdaptResult.deform` does
         not include this step nor the snap (both are defined on the mesh, not in
         space).
-    fill_order : {1, 2}
-        Harmonic (1, default) or biharmonic (2) fill. On the tuning subjects the
-        harmonic fill measured 1.14 mm against 1.17 mm: the biharmonic one carries
-        the rims' slope into the holes and overshoots inside the nostrils.
-    fill_cotangent : bool
-        Cotangent (default) or uniform weights of the fill's Laplacian.
-    fill_blend : float
-        The unpaired vertices take ``fill_blend * filled + (1 - fill_blend) * fitted``
-        (1: the fill alone; 0.5 measured 1.20 mm against 1.17 mm).
-    fill_base : {"none", "level0"}
-        What the fill interpolates: the whole displacement ("none", default) or only
-        what lies beyond level 0's landmark RBF ("level0": 1.23 mm against 1.14 mm).
-    fill_margin : int
-        Rings of paired vertices next to unpaired ones that the fill also replaces
-        (0; 1 measured 1.15 mm against 1.14 mm).
-    incidence_power : float
-        Weight each surface pair by (scan normal . view direction) ** this (0: all
-        pairs equal, default; 1 measured 1.17 mm against 1.14 mm).
     snap : bool
         After a ``"surface"`` fit (before the fill), move every visible paired vertex
         along its normal by its (smoothed) distance to the scan's tangent plane at
@@ -621,19 +573,6 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
     snap_rings : int
         One-ring averages of the snap distances over the paired neighbours, against
         scan noise (0 measured 1.105 mm, 1 1.109 mm, 3 1.114 mm).
-    shape_match_weight : float
-        Weight (in surface pairs, scaled by the match's confidence) of point-to-point
-        terms that slide each closest-point partner to the nearby scan point whose
-        shape descriptor matches the template's (:func:`~tpscore.correspondence.match_shape_features`).
-        0 (default) switches it off: it measured no better (1.17 mm at 0.3, 1.28 mm
-        at 1) and costs about 2.5 s per fit.
-    shape_match_radius : float
-        Search radius of the shape matching (mm, template frame).
-    shape_radii : sequence of float
-        Scales of the :func:`~tpscore.correspondence.shape_descriptor` (mm).
-    shape_scale : float
-        Descriptor difference counted as one unit of matching cost, in standard
-        deviations of the scan's descriptor.
     progress : callable, optional
         Called with each finished :class:`AdaptLevel`.
 
@@ -665,24 +604,14 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
                          (beta, "beta")):
         if not np.isfinite(value) or value < 0:
             raise ValueError(f"{label} must be finite and >= 0, got {value!r}")
-    if fill_base not in ("none", "level0"):
-        raise ValueError(f"fill_base must be 'none' or 'level0', got {fill_base!r}")
-    if fill_order not in (1, 2):
-        raise ValueError(f"fill_order must be 1 or 2, got {fill_order!r}")
-    if not 0.0 <= fill_blend <= 1.0:
-        raise ValueError(f"fill_blend must be in [0, 1], got {fill_blend!r}")
     if int(snap_rings) != snap_rings or snap_rings < 0:
         raise ValueError(f"snap_rings must be an integer >= 0, got {snap_rings!r}")
-    if int(fill_margin) != fill_margin or fill_margin < 0:
-        raise ValueError(f"fill_margin must be an integer >= 0, got {fill_margin!r}")
     if refinement not in ("surface", "interpolate"):
         raise ValueError(f"refinement must be 'surface' or 'interpolate', got {refinement!r}")
     for value, label in ((regularisation, "regularisation"), (centre_spacing, "centre_spacing")):
         if not np.isfinite(value) or value <= 0:
             raise ValueError(f"{label} must be finite and > 0, got {value!r}")
-    for value, label in ((point_weight, "point_weight"), (landmark_weight, "landmark_weight"),
-                         (shape_match_weight, "shape_match_weight"), (shape_match_radius, "shape_match_radius"),
-                         (shape_scale, "shape_scale"), (incidence_power, "incidence_power")):
+    for value, label in ((landmark_weight, "landmark_weight"),):
         if not np.isfinite(value) or value < 0:
             raise ValueError(f"{label} must be finite and >= 0, got {value!r}")
     if int(surface_iterations) != surface_iterations or surface_iterations < 1:
@@ -839,12 +768,6 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
                                                 box=box, spacing=0.01 * width)
     fm_template = np.zeros((0, 3))
     fm_scan = np.zeros((0, 3))
-    shape_radii = tuple(float(r) for r in shape_radii)
-    scan_shape = shape_scale_k = None
-    if refinement == "surface" and shape_match_weight > 0:
-        scan_shape = shape_descriptor(scan_points, target.vertex_normals, scan_points,
-                                      voronoi_areas(scan_points, scan_faces), shape_radii)
-        shape_scale_k = shape_scale * np.nanstd(scan_shape, axis=0)
     best_anchors = np.zeros(0, dtype=np.int64)
 
     for level in range(1, int(levels)):
@@ -867,21 +790,9 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
                                                                 max_distance=max_ray)
                 rows = rows[hit]
                 pair_targets, pair_normals = partners[hit], partner_normals[hit]
-                pair_point_weight = np.full(len(rows), float(point_weight))
-                pair_weights = None
-                if incidence_power > 0 and view is not None:
-                    # Grazing scan samples are the sparsest and noisiest.
-                    pair_weights = np.clip(pair_normals @ view, 0.05, 1.0) ** incidence_power
-                if scan_shape is not None:
-                    template_shape = shape_descriptor(current[rows], current_normals[rows], current,
-                                                      voronoi_areas(current, template_faces), shape_radii)
-                    pair_targets, confidence = match_shape_features(
-                        template_shape, pair_targets, pair_normals, scan_points, scan_shape,
-                        radius=shape_match_radius, scale=shape_scale_k)
-                    pair_point_weight = pair_point_weight + shape_match_weight * confidence
                 coefficients = fit_surface_offset(
                     offset, template_vertices[rows], current[rows], pair_targets, pair_normals,
-                    weights=pair_weights, point_weight=pair_point_weight, landmark_template=landmark_sources,
+                    landmark_template=landmark_sources,
                     landmark_current=_evaluate(fields, landmark_sources) + offset(landmark_sources),
                     landmark_targets=landmark_targets, landmark_weight=landmark_weight,
                     regularisation=regularisation)
@@ -994,16 +905,8 @@ def adapt(template, scan, template_landmarks, scan_landmarks=None, *, levels: in
         # at the unpaired vertices (about 0.2 mm for a 5% shear; see the tests).
         anchored = np.zeros(n_vertices, dtype=bool)
         anchored[best_anchors] = True
-        for _ in range(int(fill_margin)):
-            # Paired vertices next to unpaired ones sit at rims (nostril, lip line) where the
-            # closest points are least reliable: let the fill carry them too.
-            touching = np.zeros(n_vertices, dtype=bool)
-            touching[template_faces[(~anchored[template_faces]).any(axis=1)].ravel()] = True
-            anchored &= ~touching
-        base = template_vertices if fill_base == "none" else fields[0](template_vertices)
-        filled = base + fill_unseen_offsets(template_vertices, template_faces, deformed - base, anchored,
-                                            order=fill_order, cotangent=fill_cotangent)
-        deformed = fill_blend * filled + (1.0 - fill_blend) * deformed
+        deformed = template_vertices + fill_unseen_offsets(template_vertices, template_faces,
+                                                           deformed - template_vertices, anchored)
 
     if rigid_parts:
         lm_after = _evaluate(fields, landmark_sources)
