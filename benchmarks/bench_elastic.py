@@ -25,7 +25,7 @@ import pytest
 import scipy.sparse.linalg as spla
 
 from shared_data import shared_dir
-from tpscore.elastic import ElasticFace
+from tpscore.elastic import ElasticFace, ElasticOptions
 from tpscore.mesh import height_field_remesh
 from tpscore.spatial import MeshSurface
 
@@ -108,7 +108,7 @@ def test_elastic_fidelity_table(model, source):
         # Small islands of the grid (inside the nostrils, at the eye and lip rims) that
         # carry no control point are held still, as on a real scan.
         target = face.clone_to((grid_vertices, grid_faces), target_landmarks=neutral[model.landmark_index],
-                               unanchored="fix")
+                               options=ElasticOptions(unanchored="fix"))
         target_info.append((subject, len(grid_vertices), len(grid_faces), int(target.fixed.sum())))
         for i, label in enumerate(learned.names):
             expressive = neutral + model.expression_motion[label]

@@ -1,9 +1,14 @@
-"""Spatial queries: tpscore's kd-tree and mesh surface queries against SciPy, trimesh and
-the NumPy reference, at the sizes of the face pipeline (a ~35k-point scan, a 150 x 150
-grid of queries, a ~20k-triangle face mesh).
+"""Spatial queries: tpscore's kd-tree and mesh surface queries against SciPy, libigl,
+trimesh and the NumPy reference, at the sizes of the face pipeline (a ~35k-point scan,
+a 150 x 150 grid of queries, a 150 x 150 face mesh of 44,402 triangles).
 
 Each group compares like with like: the kd-tree groups fix the thread count of both
-sides (workers=1 or workers=-1). Correctness is asserted inside every benchmark.
+sides (workers=1 or workers=-1); the closest-point groups run tpscore and libigl on
+all threads (libigl's AABB queries are threaded by its own parallel_for), and build
+each side's tree once, outside the timing, except in the group that times the build.
+The brute-force references scan every point or triangle for every query, so they run
+on a few hundred queries, in groups of their own that hold tpscore and the peer too.
+Correctness is asserted inside every benchmark.
 """
 from __future__ import annotations
 
@@ -33,20 +38,6 @@ def scan():
     gu, gv = gu.ravel(), gv.ravel()
     queries = np.stack([gu, gv, face_like_surface(gu, gv) + rng.normal(scale=2.0, size=gu.size)], 1)
     return points, queries
-
-
-@pytest.fixture(scope="module")
-def face_mesh(scan):
-    """A 101 x 101 grid mesh of the same surface: 20,000 triangles."""
-    _, queries = scan
-    side = 101
-    gu, gv = np.meshgrid(np.linspace(-80, 80, side), np.linspace(-80, 80, side))
-    vertices = np.stack([gu.ravel(), gv.ravel(), face_like_surface(gu, gv).ravel()], 1)
-    index = np.arange(side * side).reshape(side, side)
-    a, b = index[:-1, :-1].ravel(), index[:-1, 1:].ravel()
-    c, d = index[1:, :-1].ravel(), index[1:, 1:].ravel()
-    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
-    return vertices, faces, queries
 
 
 @pytest.fixture(scope="module")
@@ -119,6 +110,15 @@ def test_query_small_tpscore(benchmark, scan, trees):
 
 
 @pytest.mark.benchmark(group="kdtree k=8, 200 queries on 35k, vs NumPy brute force")
+def test_query_small_scipy_ckdtree(benchmark, scan, trees):
+    points, queries = scan
+    _, theirs = trees
+    distances, _ = benchmark(theirs.query, queries[:REFERENCE_QUERIES], 8, workers=1)
+    want_d, _ = ref.knn(points, queries[:REFERENCE_QUERIES], 8)
+    np.testing.assert_allclose(distances, want_d, rtol=1e-13)
+
+
+@pytest.mark.benchmark(group="kdtree k=8, 200 queries on 35k, vs NumPy brute force")
 def test_query_small_numpy_reference(benchmark, scan):
     points, queries = scan
     distances, _ = benchmark.pedantic(ref.knn, (points, queries[:REFERENCE_QUERIES], 8),
@@ -146,47 +146,119 @@ def test_radius_scipy_ckdtree(benchmark, scan, trees):
 # --------------------------------------------------------------- mesh surface
 
 
+def face_grid_mesh(side):
+    """A side x side grid mesh of a face-like height field (a broad dome and a nose),
+    two triangles per quad, as the preprocessing stage produces."""
+    x, y = np.meshgrid(np.linspace(-75, 75, side), np.linspace(-90, 90, side))
+    z = 60 * np.exp(-(x**2 / (2 * 55**2) + y**2 / (2 * 70**2))) + 18 * np.exp(
+        -(x**2 / (2 * 9**2) + (y + 5) ** 2 / (2 * 16**2)))
+    vertices = np.stack([x, y, z], axis=-1).reshape(-1, 3)
+    index = np.arange(side * side).reshape(side, side)
+    a, b, c, d = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
+    faces = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+    return vertices, faces
+
+
+@pytest.fixture(scope="module")
+def face_mesh():
+    """The 150 x 150 face mesh (44,402 triangles) and 22,500 queries near it: its own
+    vertices moved by 2 mm of noise, in grid order (as a registration queries a scan)."""
+    vertices, faces = face_grid_mesh(150)
+    queries = vertices + np.random.default_rng(0).normal(scale=2.0, size=vertices.shape)
+    return vertices, faces, queries
+
+
 @pytest.fixture(scope="module")
 def surface(face_mesh):
     vertices, faces, _ = face_mesh
     return tpscore.MeshSurface(vertices, faces)
 
 
-@pytest.mark.benchmark(group="closest point, 22.5k queries on 20k triangles")
+def _igl():
+    return pytest.importorskip("igl", reason="libigl (pip install libigl, the bench extra) is the peer")
+
+
+CLOSEST = "closest point, 22.5k queries on a 150x150 face mesh (44k triangles), tree built"
+CLOSEST_BUILD = "closest point, 22.5k queries on a 150x150 face mesh, building the tree included"
+CLOSEST_SMALL = "closest point, 500 queries on a 150x150 face mesh, vs NumPy brute force"
+
+
+def _check_distances(distances, vertices, faces, queries, rows=slice(0, N_QUERIES, 45)):
+    want = ref.closest_point_on_mesh(vertices, faces, queries[rows])
+    np.testing.assert_allclose(distances[rows], want[3], rtol=0, atol=1e-9)  # 500 rows
+
+
+@pytest.mark.benchmark(group=CLOSEST)
 def test_closest_point_tpscore(benchmark, face_mesh, surface):
     vertices, faces, queries = face_mesh
-    # One thread: trimesh's query is serial, so like is compared with like.
-    result = benchmark(surface.closest_point, queries, workers=1)
-    sample = slice(0, N_QUERIES, 45)  # 500 rows checked against brute force
-    want = ref.closest_point_on_mesh(vertices, faces, queries[sample])
-    np.testing.assert_allclose(result.distances[sample], want[3], atol=1e-9)
+    result = benchmark(surface.closest_point, queries)
+    _check_distances(result.distances, vertices, faces, queries)
 
 
-@pytest.mark.benchmark(group="closest point, 22.5k queries on 20k triangles")
+@pytest.mark.benchmark(group=CLOSEST)
+def test_closest_point_libigl_aabb(benchmark, face_mesh):
+    igl = _igl()
+    vertices, faces, queries = face_mesh
+    tree = igl.AABB()
+    tree.init(vertices, faces)
+    squared, _, _ = benchmark(tree.squared_distance, vertices, faces, queries)
+    _check_distances(np.sqrt(squared), vertices, faces, queries)
+
+
+@pytest.mark.benchmark(group=CLOSEST)
 def test_closest_point_trimesh(benchmark, face_mesh):
     pytest.importorskip("rtree", reason="trimesh.proximity.closest_point needs rtree")
     import trimesh
 
     vertices, faces, queries = face_mesh
     mesh = trimesh.Trimesh(vertices, faces, process=False)
-    mesh.triangles_tree  # build its r-tree outside the timing, as MeshSurface is
+    mesh.triangles_tree  # build its r-tree outside the timing, as the others' trees are
     _, distances, _ = benchmark.pedantic(trimesh.proximity.closest_point, (mesh, queries),
                                          rounds=1, iterations=1)
-    ours = tpscore.MeshSurface(vertices, faces).closest_point(queries).distances
-    # trimesh computes the same exact distance, in float64.
-    np.testing.assert_allclose(distances, ours, atol=1e-7)
+    _check_distances(distances, vertices, faces, queries)
 
 
-@pytest.mark.benchmark(group="closest point, 500 queries on 20k triangles, vs NumPy brute force")
+def _tpscore_build_and_query(vertices, faces, queries):
+    return tpscore.MeshSurface(vertices, faces).closest_point(queries)
+
+
+@pytest.mark.benchmark(group=CLOSEST_BUILD)
+def test_closest_point_with_build_tpscore(benchmark, face_mesh):
+    vertices, faces, queries = face_mesh
+    result = benchmark(_tpscore_build_and_query, vertices, faces, queries)
+    _check_distances(result.distances, vertices, faces, queries)
+
+
+@pytest.mark.benchmark(group=CLOSEST_BUILD)
+def test_closest_point_with_build_libigl(benchmark, face_mesh):
+    igl = _igl()
+    vertices, faces, queries = face_mesh
+    squared, _, _ = benchmark(igl.point_mesh_squared_distance, queries, vertices, faces)
+    _check_distances(np.sqrt(squared), vertices, faces, queries)
+
+
+@pytest.mark.benchmark(group=CLOSEST_SMALL)
 def test_closest_point_small_tpscore(benchmark, face_mesh, surface):
     vertices, faces, queries = face_mesh
     subset = queries[::45]
-    result = benchmark(surface.closest_point, subset, workers=1)
+    result = benchmark(surface.closest_point, subset)
     want = ref.closest_point_on_mesh(vertices, faces, subset)
-    np.testing.assert_allclose(result.distances, want[3], atol=1e-9)
+    np.testing.assert_allclose(result.distances, want[3], rtol=0, atol=1e-9)
 
 
-@pytest.mark.benchmark(group="closest point, 500 queries on 20k triangles, vs NumPy brute force")
+@pytest.mark.benchmark(group=CLOSEST_SMALL)
+def test_closest_point_small_libigl_aabb(benchmark, face_mesh):
+    igl = _igl()
+    vertices, faces, queries = face_mesh
+    subset = queries[::45]
+    tree = igl.AABB()
+    tree.init(vertices, faces)
+    squared, _, _ = benchmark(tree.squared_distance, vertices, faces, subset)
+    want = ref.closest_point_on_mesh(vertices, faces, subset)
+    np.testing.assert_allclose(np.sqrt(squared), want[3], rtol=0, atol=1e-9)
+
+
+@pytest.mark.benchmark(group=CLOSEST_SMALL)
 def test_closest_point_small_numpy_reference(benchmark, face_mesh):
     vertices, faces, queries = face_mesh
     result = benchmark.pedantic(ref.closest_point_on_mesh, (vertices, faces, queries[::45]),
@@ -194,7 +266,7 @@ def test_closest_point_small_numpy_reference(benchmark, face_mesh):
     assert np.isfinite(result[3]).all()
 
 
-@pytest.mark.benchmark(group="rays both ways, 500 rays on 20k triangles, vs NumPy brute force")
+@pytest.mark.benchmark(group="rays both ways, 500 rays on a 150x150 face mesh, vs NumPy brute force")
 def test_rays_small_tpscore(benchmark, face_mesh, surface):
     vertices, faces, queries = face_mesh
     origins = queries[::45]
@@ -206,7 +278,7 @@ def test_rays_small_tpscore(benchmark, face_mesh, surface):
     np.testing.assert_allclose(hits.distances[hits.hit], want[1][want[0]], atol=1e-9)
 
 
-@pytest.mark.benchmark(group="rays both ways, 500 rays on 20k triangles, vs NumPy brute force")
+@pytest.mark.benchmark(group="rays both ways, 500 rays on a 150x150 face mesh, vs NumPy brute force")
 def test_rays_small_numpy_reference(benchmark, face_mesh):
     vertices, faces, queries = face_mesh
     origins = queries[::45]

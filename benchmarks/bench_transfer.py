@@ -11,7 +11,7 @@ import pytest
 import tpscore
 from tpscore import datasets
 from tpscore.face import io
-from tpscore.expression_transfer import animate
+from tpscore.expression import animate
 
 
 @pytest.fixture(scope="module")
@@ -37,14 +37,8 @@ def test_tpscore_transfer_default(benchmark, scan_files):
 
 
 @pytest.mark.benchmark(group="transfer: 3 scans from files to the animated target")
-def test_transfer_thesis_method(benchmark, scan_files):
-    result = benchmark(_transfer_from_files, scan_files, tpscore.TransferOptions.thesis())
-    assert np.nanmax(np.linalg.norm(result.vertices - result.neutral, axis=2)) > 1.0
-
-
-@pytest.mark.benchmark(group="transfer: 3 scans from files to the animated target")
-def test_transfer_landmark_model(benchmark, scan_files):
-    result = benchmark(_transfer_from_files, scan_files, tpscore.TransferOptions.landmark_model())
+def test_transfer_published_method(benchmark, scan_files):
+    result = benchmark(_transfer_from_files, scan_files, tpscore.TransferOptions.published())
     assert np.nanmax(np.linalg.norm(result.vertices - result.neutral, axis=2)) > 1.0
 
 

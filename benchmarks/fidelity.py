@@ -7,13 +7,13 @@ subject to other target subjects, scores each prediction with
 variant to bench-output/fidelity.md (and .json).
 
     python benchmarks/fidelity.py [--subjects 0-19] [--offsets 1 2]
-        [--variants noop thesis default geometry-only] [--registration 0-3]
+        [--variants noop published default geometry-only] [--registration 0-3]
 
 Variants: ``default`` (texture-aided when the scans have images), ``geometry-only``
 (the same scans with their images withheld), ``expressive-without-image`` (only the
-source's expressive scan withheld), ``thesis`` (the method as published), ``noop``
+source's expressive scan withheld), ``published`` (the method as published), ``noop``
 (the target left neutral), each name of benchmarks/texture_ablations.py (the default
-with one part of the texture term undone), and the older pipeline ablations below.
+with one part of the texture term undone), and parts of the default undone one at a time.
 ``--registration`` also scores the registration alone (the source's own expressive
 scan predicted from its registered field) with and without texture.
 
@@ -88,15 +88,16 @@ def main(argv=None) -> int:
     ap.add_argument("--offsets", type=int, nargs="+", default=[1, 2],
                     help="target = (source + offset) mod n for each offset: n pairs per offset")
     ap.add_argument("--aus", nargs="+", default=list(AU_CODES))
-    ap.add_argument("--variants", nargs="+", default=["noop", "thesis", "default", "geometry-only"],
-                    help="noop, thesis, default, or an ablation (see the variants table "
-                         "in the code): landmark-model, dense-control-points, adapt-field, ...")
+    ap.add_argument("--variants", nargs="+", default=["noop", "published", "default", "geometry-only"],
+                    help="noop, published, default, geometry-only, expressive-without-image, a part "
+                         "of the default undone (see the variants table in the code), or a texture "
+                         "ablation (benchmarks/texture_ablations.py)")
     ap.add_argument("--motion-variants", nargs="*", default=[],
                     help="extra variants NAME=key:value,... changing the default's MotionOptions "
-                         "(e.g. shape4=shape_weight:4.0); list NAME under --variants too")
+                         "(e.g. lattice6=spacing_mm:6.0); list NAME under --variants too")
     ap.add_argument("--option-variants", nargs="*", default=[],
                     help="extra variants NAME=key:value,... changing the default's TransferOptions "
-                         "(e.g. smooth1=landmark_smoothing:1.0); list NAME under --variants too")
+                         "(e.g. seam5=transition_mm:5.0); list NAME under --variants too")
     ap.add_argument("--out", default=str(ROOT / "bench-output"))
     ap.add_argument("--registration", default="",
                     help="subjects (e.g. 0-3) whose registration alone is scored, with and without texture")
@@ -110,7 +111,7 @@ def main(argv=None) -> int:
         print("fidelity benchmark skipped: ../shared (make_scans.py, score_transfer.py) not found")
         return 0
     import tpscore
-    from tpscore.expression_transfer import TransferOptions
+    from tpscore import TransferOptions
 
     scorer = load_module(shared / "tools" / "score_transfer.py", "score_transfer")
     faces = np.load(shared / "data" / "ict-facekit" / "face_model.npz")["faces"]
@@ -120,39 +121,19 @@ def main(argv=None) -> int:
     subjects = parse_subjects(args.subjects)
     ensure_scans(shared, scans, subjects, scan_args)
 
-    thesis = TransferOptions.thesis()
     default = TransferOptions()
     variants = {
-        "thesis": thesis,
-        "landmark-model": TransferOptions.landmark_model(),
-        "landmark-model-normalise": replace(TransferOptions.landmark_model(), alignment="normalise"),
-        "dense-control-points": replace(default, animation="control-points"),
-        "dense-control-points-wendland": replace(default, animation="control-points", warp="wendland"),
-        "default-mouth-scale": replace(default, scale_lower_face=True),
-        "default-hard-seam": replace(default, transition_mm=0.0),
-        # each of the defaults' departures from the method, added on its own
-        "thesis+similarity": replace(thesis, normalisation="similarity"),
-        "thesis+surface-snap": replace(thesis, snap="surface"),
-        "thesis+merge-landmarks": replace(thesis, merge_landmarks_mm=TransferOptions().merge_landmarks_mm),
-        "thesis+anchors": replace(thesis, anchors=True),
-        "default-fade-small": replace(default, still_motion_mm=0.5),
-        "default-no-mirror": replace(default, mirror_average=False),
-        "default-no-spill": replace(default, upper_spill=0.0),
-        "adapt-field": replace(default, motion="adapt"),
+        "published": TransferOptions.published(),
         "default": default,
+        # the same transfers with colour images withheld (which scans: see `withheld`)
         "geometry-only": default,
         "expressive-without-image": default,
-        # the registration's choices, each undone or added on its own
-        "default-raw-landmarks": replace(default, motion_options=replace(
-            default.motion_options, refine_radius_mm=0.0)),
-        "default-shape-term": replace(default, motion_options=replace(
-            default.motion_options, shape_weight=1.0)),
-        "default-membrane": replace(default, motion_options=replace(
-            default.motion_options, membrane_weight=10.0)),
-        "default-no-rest": replace(default, motion_options=replace(
-            default.motion_options, rest_weight=0.0)),
-        "registration-round-1": replace(default, motion_options=replace(
-            default.motion_options, refine_radius_mm=0.0, iterations=6, tangential_weight=0.05)),
+        # parts of the default undone one at a time
+        "default-no-mirror": replace(default, mirror_average=False),
+        "default-no-spill": replace(default, upper_spill=0.0),
+        "default-hard-seam": replace(default, transition_mm=0.0),
+        "default-no-rest": replace(default, motion=replace(default.motion, rest_weight=0.0)),
+        "texture-refined": replace(default, motion=replace(default.motion, texture_refine_after=5)),
     }
     # pipeline and registration settings from the command line: name=key:value,key:value
     def parse_variant(spec):
@@ -166,7 +147,7 @@ def main(argv=None) -> int:
         variants[name] = replace(default, **changes)
     for spec in args.motion_variants:
         name, changes = parse_variant(spec)
-        variants[name] = replace(default, motion_options=replace(default.motion_options, **changes))
+        variants[name] = replace(default, motion=replace(default.motion, **changes))
     for name in ABLATIONS:
         variants[name] = default
     for name in args.variants:
@@ -286,7 +267,7 @@ def registration_alone(tpscore, scorer, faces, scans, subjects, aus) -> list[str
     """Rows scoring the registration alone: each subject's neutral grid moved by its
     registered field (mirror-averaged as the transfer does) against its own expressive
     scan, with the scans' images and with them withheld."""
-    from tpscore import expression_transfer as et
+    from tpscore.expression import modelling
 
     reference = tpscore.load_average_face().as_normalised_face()
     library = tpscore.default_library()
@@ -302,12 +283,12 @@ def registration_alone(tpscore, scorer, faces, scans, subjects, aus) -> list[str
                     if not with_texture:
                         scans_of = [replace(g, image=None) for g in scans_of]
                     activations = library.parse(au)
-                    neutral = et.normalise_face(scans_of[0], reference.landmarks)
-                    expressive = et.align_expressive(neutral, scans_of[0], scans_of[1],
+                    neutral = tpscore.normalise_face(scans_of[0], reference.landmarks)
+                    expressive = modelling.align_expressive(neutral, scans_of[0], scans_of[1],
                                                      [a.action_unit.region for a in activations])
-                    field = et.dense_motion(neutral, expressive)
+                    field = modelling.dense_motion(neutral, expressive)
                     if all(a.side is None for a in activations):
-                        field = et._mirrored(field, neutral)
+                        field = modelling.mirrored(field, neutral)
                 points = neutral.grid.points.reshape(-1, 3)
                 predicted = neutral.transform.apply_inverse(points + field(points)).reshape(neutral.grid.points.shape)
                 score = scorer.score(predicted, neutral.transform.apply_inverse(neutral.grid.points),

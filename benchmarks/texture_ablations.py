@@ -11,7 +11,9 @@ from unittest import mock
 
 import numpy as np
 
-from tpscore import motion, texture
+from tpscore.expression import registration as motion
+from tpscore.geometry import robust_scale, tukey_weights
+from tpscore.expression import texture
 
 
 def _without_consistency_check():
@@ -84,29 +86,19 @@ def _without_common_rendering():
 
 def _full_point_pull():
     """The match pulls its data point onto the matched point in 3D, normal included."""
-    def term(moved, sample, normals, targets, prior, options):
-        offset = moved - targets
-        residual = np.linalg.norm(offset, axis=1)
+    def pull(sample, pairs, targets, prior):
+        residual = np.linalg.norm(pairs.moved - targets, axis=1)
         used = prior > 0
-        scale = max(1.4826 * float(np.median(residual[used])) if used.any() else 0.0,
-                    options.texture_min_scale_mm)
-        u = residual / (options.tukey_factor * scale)
-        w = np.where(used & (u < 1.0), (1.0 - u * u) ** 2, 0.0) * prior
-        blocks = w[:, None] * np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])
-        return blocks, w[:, None] * (targets - sample)
+        scale = robust_scale(residual[used], motion.TEXTURE_SCALE_FLOOR_MM)
+        w = np.where(used, tukey_weights(residual, motion.TUKEY_FACTOR * scale), 0.0) * prior
+        return w[:, None] * np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0]), w[:, None] * (targets - sample)
 
-    return mock.patch.object(motion, "_texture_term", term)
+    return mock.patch.object(motion, "_texture_pull", pull)
 
 
 def _without_robust_weight():
     """Every match pulls with its confidence alone, however far off it is."""
-    original = motion._texture_term
-
-    def term(moved, sample, normals, targets, prior, options):
-        from dataclasses import replace
-        return original(moved, sample, normals, targets, prior, replace(options, tukey_factor=1e9))
-
-    return mock.patch.object(motion, "_texture_term", term)
+    return mock.patch.object(motion, "TEXTURE_SCALE_FLOOR_MM", 1e9)
 
 
 def _farneback_flow():

@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from tpscore.action_units import ActionUnit, ActionUnitLibrary, ControlPoint, default_library
+from tpscore.expression.action_units import ActionUnit, ActionUnitLibrary, ControlPoint, default_library
 from tpscore.face.average_face import load_average_face
 
 

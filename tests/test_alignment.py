@@ -3,7 +3,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from tpscore import datasets
-from tpscore.alignment import align_rigid, fit_mirror_symmetry, rigid_landmark_fit
+from tpscore.expression.alignment import align_rigid, fit_mirror_symmetry, rigid_landmark_fit
 from tpscore.face.normalise import FrameTransform
 from tpscore.face.grid import resample_scan
 from tpscore.face.regions import region_weight

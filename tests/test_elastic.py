@@ -9,8 +9,10 @@ import scipy.sparse as sp
 
 import tpscore
 from tpscore import datasets, render
-from tpscore.elastic import (ElasticFace, ExpressionSet, default_control_points, default_fixed_region,
-                             face_frame, place_control_points)
+from tpscore.elastic import (ElasticControlPoint, ElasticFace, ElasticOptions, ExpressionSet, default_control_points,
+                             default_fixed_region, place_control_points)
+from tpscore.face.landmarks import AnchoredPoint
+from tpscore.face.normalise import face_frame
 from tpscore.mesh import cotan_laplacian, voronoi_areas
 
 
@@ -77,7 +79,8 @@ def test_free_vertices_satisfy_the_euler_lagrange_equation(stretching, bending):
     vertices[:, 2] = 0.01 * vertices[:, 0] ** 2  # curved, so cotangent weights vary
     fixed = np.linalg.norm(vertices[:, :2], axis=1) > 13
     handles = [int(np.argmin(np.linalg.norm(vertices[:, :2] - p, axis=1))) for p in ([0, 0], [5, 3], [-4, -6])]
-    face = ElasticFace(vertices, faces, handles, fixed=fixed, stretching=stretching, bending=bending)
+    face = ElasticFace(vertices, faces, handles, fixed=fixed,
+                       options=ElasticOptions(stretching=stretching, bending=bending))
     params = np.random.default_rng(1).normal(size=(3, 3))
     displacement = face.deform(params) - vertices
     laplacian = cotan_laplacian(vertices, faces)
@@ -242,7 +245,7 @@ def test_handle_inside_fixed_region_is_rejected():
 def test_default_fixed_region_too_small_for_control_points(procedural_face):
     vertices, faces, landmarks = procedural_face
     with pytest.raises(ValueError, match="inside the fixed region.*fixed_factor"):
-        ElasticFace(vertices, faces, landmarks=landmarks, fixed_factor=0.5)
+        ElasticFace(vertices, faces, landmarks=landmarks, options=ElasticOptions(fixed_factor=0.5))
     assert default_fixed_region(vertices, landmarks, 0.5).sum() > default_fixed_region(vertices, landmarks).sum()
 
 
@@ -286,15 +289,52 @@ def test_other_bad_input_gets_clear_errors(procedural_elastic):
     with pytest.raises(ValueError, match="no control point and no fixed vertex"):
         ElasticFace(np.concatenate([vertices, vertices + [20, 0, 0]]), two_parts, [60], fixed=[])
     island = ElasticFace(np.concatenate([vertices, vertices + [20, 0, 0]]), two_parts, [60], fixed=[],
-                         unanchored="fix")
+                         options=ElasticOptions(unanchored="fix"))
     assert island.fixed[len(vertices):].all() and not island.fixed[:len(vertices)].any()
     fresh = ElasticFace(vertices, faces, [60], fixed=[0])
     with pytest.raises(ValueError, match="call fit"):
         fresh.blend([1.0])
 
 
+def test_options_are_validated_in_one_place():
+    with pytest.raises(ValueError, match="ElasticOptions.stretching must be finite and >= 0"):
+        ElasticOptions(stretching=-1.0)
+    with pytest.raises(ValueError, match="ElasticOptions.fixed_factor must be finite and > 0"):
+        ElasticOptions(fixed_factor=0.0)
+    with pytest.raises(ValueError, match="ElasticOptions.unanchored must be one of"):
+        ElasticOptions(unanchored="drop")
+    with pytest.raises(ValueError, match="no energy"):
+        ElasticOptions(stretching=0.0, bending=0.0)
+    vertices, faces = grid_patch(11)
+    with pytest.raises(ValueError, match="options must be an ElasticOptions"):
+        ElasticFace(vertices, faces, [60], fixed=[0], options={"bending": 1.0})
+
+
+def test_clone_builds_the_target_with_the_given_options(procedural_face):
+    vertices, faces, landmarks = procedural_face
+    source = ElasticFace(vertices, faces, landmarks=landmarks)
+    source.fit(source.deform(np.random.default_rng(6).normal(size=(1, 47, 3))))
+    # The procedural face reaches past 1.5 but not past the default 1.8 times the
+    # nose-tip-to-forehead distance: only the target's smaller region holds vertices.
+    tighter = ElasticOptions(fixed_factor=1.5)
+    target = source.clone_to((vertices, faces), target_landmarks=landmarks, options=tighter)
+    assert target.options == tighter
+    assert not source.fixed.any()
+    assert target.fixed.any() and np.array_equal(target.fixed, default_fixed_region(vertices, landmarks, 1.5))
+    with pytest.raises(ValueError, match="options do not apply"):
+        source.clone_to(target, options=tighter)
+
+
+def test_control_points_are_anchored_points_with_a_region():
+    point = default_control_points()[0]
+    assert isinstance(point, AnchoredPoint) and point.region in ("eyebrows", "eyelids", "nose", "cheeks", "lips", "jaw")
+    with pytest.raises(ValueError, match="region must be one of"):
+        ElasticControlPoint(name="x", side="left", at={"Nose tip": 1.0}, region="ear")
+
+
 def test_public_names_are_exported():
-    for name in ("ElasticFace", "ExpressionSet", "SparseCholesky", "MuscleModel", "LinearMuscle", "SphincterMuscle"):
+    for name in ("ElasticFace", "ElasticOptions", "ExpressionSet", "SparseCholesky", "MuscleModel", "LinearMuscle",
+                 "SphincterMuscle"):
         assert hasattr(tpscore, name) and name in tpscore.__all__
 
 
@@ -315,7 +355,7 @@ def test_ict_face_reconstructs_expressions(shared):
 def test_cli_fits_and_clones_npz_inputs_with_pictures(procedural_face, tmp_path):
     import argparse
 
-    from tpscore.elastic_cli import add_elastic_parser
+    from tpscore.cli.elastic import add_elastic_parser
 
     vertices, faces, landmarks = procedural_face
     source_face = ElasticFace(vertices, faces, landmarks=landmarks)

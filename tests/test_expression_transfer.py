@@ -1,4 +1,3 @@
-import time
 import warnings
 
 import numpy as np
@@ -6,13 +5,13 @@ import pytest
 
 import tpscore
 from tpscore import datasets
-from tpscore.expression_transfer import TransferOptions
+from tpscore.expression import TransferOptions
 from tpscore.face.landmarks import landmark_index
-from tpscore.motion import DenseMotion, MirroredMotion
+from tpscore.expression import DenseMotion, MirroredMotion
 from tpscore.face.grid import resample_scan
 from tpscore.face.regions import region_boundary
 
-VARIANTS = {"default": TransferOptions(), "thesis": TransferOptions.thesis()}
+VARIANTS = {"default": TransferOptions(), "published": TransferOptions.published()}
 
 
 def _grid(scan):
@@ -119,7 +118,7 @@ def test_a_bilateral_expression_averages_its_field_with_the_mirror_image(smile):
     assert isinstance(tpscore.transfer(gs, ge, gs, "12L").model.dense, DenseMotion)
 
 
-def test_frames_are_linear_in_magnitude_and_cheap(smile):
+def test_frames_are_linear_in_magnitude(smile):
     _, (gs, ge, gt) = smile
     animation = tpscore.transfer(gs, ge, gt, "12,1").animation
     neutral = animation.frame(0.0)
@@ -129,11 +128,6 @@ def test_frames_are_linear_in_magnitude_and_cheap(smile):
     both = animation.frame({"AU12": 1.0, "AU1": 0.0}) - neutral
     mask = animation.target.grid.mask
     assert np.allclose(both[mask], animation.fields[0][mask], atol=1e-12)
-    # a frame is a scaled add of precomputed fields: 150 x 150 in far less than a fit
-    start = time.perf_counter()
-    for _ in range(50):
-        animation.frame(0.7)
-    assert (time.perf_counter() - start) / 50 < 0.005
 
 
 def test_magnitude_outside_unit_interval_warns(smile):
@@ -143,16 +137,16 @@ def test_magnitude_outside_unit_interval_warns(smile):
         result.vertices
 
 
-@pytest.mark.parametrize("alignment", ["normalise", "rigid"])
-def test_aus_of_different_regions_add(smile, alignment):
+@pytest.mark.parametrize("method", ["published", "default"])
+def test_aus_of_different_regions_add(smile, method):
     _, (gs, ge, gt) = smile
     # the boundary alone splits the regions (the spill lets a brow AU take a little of
     # what lies below it: see the spill's tests)
-    options = TransferOptions(alignment=alignment, upper_spill=0.0)
+    options = TransferOptions(method=method, upper_spill=0.0)
     a = tpscore.transfer(gs, ge, gt, "12", options=options).animation.displacement(1.0)
     b = tpscore.transfer(gs, ge, gt, "1", options=options).animation.displacement(1.0)
     ab = tpscore.transfer(gs, ge, gt, "12,1", options=options).animation.displacement(1.0)
-    if alignment == "normalise":
+    if method == "published":
         assert np.allclose(ab, a + b, equal_nan=True, atol=1e-9)
     else:
         # the rigid alignment leans on the region the AUs leave still, which differs
@@ -215,8 +209,10 @@ def test_results_carry_the_frame_transform(smile):
 
 
 def test_options_are_validated():
-    with pytest.raises(ValueError, match="snap"):
-        TransferOptions(snap="nearest")
+    with pytest.raises(ValueError, match="TransferOptions.method"):
+        TransferOptions(method="nearest")
+    with pytest.raises(ValueError, match="TransferOptions.motion"):
+        TransferOptions(motion="dense")
     with pytest.raises(ValueError, match="transition_mm"):
         TransferOptions(transition_mm=-1.0)
 
@@ -260,7 +256,7 @@ def test_default_copes_with_holes_missing_landmarks_and_pose():
 
 
 def test_upper_spill_keeps_strong_upper_face_motion_below_the_boundary():
-    from tpscore.expression_transfer import _spill
+    from tpscore.expression.animation import _spill
     # a column of nine grid vertices, the top three in the upper region
     valid = np.ones((9, 1), dtype=bool)
     upper = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])

@@ -5,9 +5,10 @@ import scipy.sparse as sp
 from tpscore import _core, datasets
 from tpscore.face.landmarks import landmark_index
 from tpscore.lattice import BSplineLattice, LatticeSystem, symmetric_blocks
-from tpscore.motion import (MirroredMotion, MotionOptions,
-                           curvature_image, face_gradients, refine_landmark_motion, refined_pair_trust,
-                           grid_normals, register_surfaces, rest_pull_per_node)
+from tpscore.expression import registration
+from tpscore.expression.landmark_pairs import refine_landmark_motion, refined_pair_trust
+from tpscore.expression.mirror import MirroredMotion
+from tpscore.expression.registration import MotionOptions, grid_normals, register_surfaces, rest_pull_per_node
 from tpscore.face.normalise import FrameTransform
 from tpscore.face.grid import FaceGrid, resample_scan
 from tpscore.reference import lattice as reference
@@ -155,42 +156,6 @@ def test_lattice_derivatives_match_finite_differences():
         lattice.basis(xy, "z")
 
 
-def test_face_gradients_are_exact_for_linear_functions():
-    rng = np.random.default_rng(3)
-    vertices = rng.normal(size=(30, 3)) * 10.0
-    faces = rng.integers(0, 30, size=(40, 3))
-    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
-    direction = np.array([0.3, -1.2, 0.7])
-    gradient = face_gradients(vertices, faces, vertices @ direction + 4.0)
-    e1 = vertices[faces[:, 1]] - vertices[faces[:, 0]]
-    e2 = vertices[faces[:, 2]] - vertices[faces[:, 0]]
-    normal = np.cross(e1, e2)
-    normal /= np.linalg.norm(normal, axis=1)[:, None]
-    in_plane = direction - np.einsum("ij,j->i", normal, direction)[:, None] * normal
-    # a linear function's gradient on a triangle is its projection onto the plane
-    assert np.allclose(gradient, in_plane, atol=1e-9)
-
-
-def test_curvature_image_of_a_sphere_cap():
-    radius = 60.0
-    y, x = np.mgrid[-30:30.1:1.0, -30:30.1:1.0]
-    z = np.sqrt(radius ** 2 - x ** 2 - y ** 2)
-    points = np.stack([x, y[::-1], z], axis=-1)  # rows run downward in y, as scans do
-    mask = np.ones(x.shape, bool)
-    mask[25:35, 25:35] = False   # a hole
-    curvature = curvature_image(points, mask, sigma_mm=2.0)
-    inner = np.isfinite(curvature)
-    assert inner.sum() > 0.6 * mask.sum()
-    from scipy.ndimage import binary_erosion
-    far = inner & binary_erosion(mask, iterations=6)
-    # the outward (+z) normal of a sphere: H = 1/R; away from the rims (3 sigma) the
-    # smoothing shrinks the cap by (2/60)^2 ~ 0.1 %, the 1 mm grid adds about as much
-    assert np.allclose(np.abs(curvature[far]), 1.0 / radius, rtol=0.02)
-    # near the rims the smoothing leans toward the inside (measured within 30 %)
-    assert np.allclose(np.abs(curvature[inner]), 1.0 / radius, rtol=0.35)
-    assert not np.isfinite(curvature[~mask]).any()
-
-
 def test_landmark_refinement_recovers_a_translation_from_noisy_pairs():
     scan = datasets.make_face(datasets.random_identity(2), None, seed=3)
     neutral = resample_scan(scan.points, scan.landmarks)
@@ -277,7 +242,7 @@ def _flat_face():
     return flat, grid, MeshSurface(mesh.vertices, mesh.faces)
 
 
-def test_a_loose_early_scale_bound_lets_a_block_motion_be_found():
+def test_a_loose_early_scale_bound_lets_a_block_motion_be_found(monkeypatch):
     # a disc of the flat face raised by 4 mm with steep sides (a chin pushed forward)
     # and no landmark on it: most of the face is still, so the robust scale is its
     # lower bound, and a tight bound at the first, stiff iterations cuts the disc's
@@ -293,15 +258,14 @@ def test_a_loose_early_scale_bound_lets_a_block_motion_be_found():
     centre = np.array([[25.0, -25.0, 0.0]])
 
     def lift(start):
-        field = register_surfaces(flat, grid.mask, landmarks, surface, landmarks,
-                                  MotionOptions(min_scale_start_mm=start))
+        monkeypatch.setattr(registration, "SCALE_FLOOR_START_MM", start)
+        field = register_surfaces(flat, grid.mask, landmarks, surface, landmarks)
         return field(centre)[0, 2]
 
-    constant, default, loose = lift(0.0), lift(MotionOptions().min_scale_start_mm), lift(2.0)
+    default = lift(registration.SCALE_FLOOR_START_MM)
+    constant, loose = lift(registration.SCALE_FLOOR_END_MM), lift(2.0)
     assert constant < 2.5 and loose > 3.5
     assert constant < default < loose
-    with pytest.raises(ValueError, match="min_scale_start_mm"):
-        MotionOptions(min_scale_start_mm=-1.0)
 
 
 def test_the_pull_toward_rest_gives_way_where_the_surface_has_shape():
@@ -321,8 +285,6 @@ def test_the_pull_toward_rest_gives_way_where_the_surface_has_shape():
     assert np.allclose(pull[(radius > 40) & (radius < 55)], 0.01, rtol=0.02)
     assert pull[radius < 12].max() < 0.3 * 0.01
     assert np.all(rest_pull_per_node(basis, normals, 0.01, 0.0) == 0.01)
-    with pytest.raises(ValueError, match="rest_shape_ratio"):
-        MotionOptions(rest_shape_ratio=-0.1)
 
 
 def test_refined_pairs_keep_the_labelled_motion_along_a_flat_surface():
@@ -347,9 +309,9 @@ def test_rest_weight_lets_an_unobserved_slide_fade_away_from_its_landmark():
     slide = np.array([2.0, 0.0, 0.0])
     far = np.array([[50.0, 50.0, 0.0], [-50.0, 45.0, 0.0]])
     carried = register_surfaces(flat, grid.mask, landmarks, surface, landmarks + slide,
-                                MotionOptions(tangential_weight=0.0, rest_weight=0.0))
+                                MotionOptions(rest_weight=0.0))
     faded = register_surfaces(flat, grid.mask, landmarks, surface, landmarks + slide,
-                              MotionOptions(tangential_weight=0.0, rest_weight=0.01))
+                              MotionOptions(rest_weight=0.01))
     # without the pull toward rest the bending energy carries the slide on
     assert np.all(carried(far)[:, 0] > 1.2)
     # with it the landmark keeps its motion, the face far from it comes to rest, and

@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 
 from tpscore import datasets, render
-from tpscore.elastic import ElasticFace
-from tpscore.muscles import EMOTIONS, LinearMuscle, MuscleModel, SphincterMuscle, load_muscles
+from tpscore.elastic import EMOTIONS, ElasticFace, LinearMuscle, MuscleModel, SphincterMuscle, load_muscles
 
 
 @pytest.fixture(scope="module")

@@ -285,6 +285,169 @@ def test_values_of_any_width():
         one_dimensional.displacement(centres)
 
 
+# --- the blocked, threaded fit -----------------------------------------------------------
+
+def face_like_cloud(rng, n):
+    """n points on a face-sized curved surface with depth jitter, in mm (as the pipeline's)."""
+    xy = rng.uniform(-70.0, 70.0, size=(n, 2))
+    z = 40.0 * np.exp(-(xy ** 2).sum(axis=1) / 5000.0) + rng.normal(scale=1.0, size=n)
+    return np.column_stack([xy, z])
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("n, smoothing", [(150, 0.0), (420, 0.0), (420, 1e-3)])
+def test_blocked_fit_matches_reference(kernel, n, smoothing):
+    # n > 128 takes the factorisation through several panels (and the threaded
+    # trailing updates): the compiled fit must still be the reference's interpolant.
+    # Unit-sized coordinates keep the reference's own system (solved as written, not
+    # normalised) well enough conditioned to be a reference.
+    rng = np.random.default_rng(n + 7)
+    centres = face_like_cloud(rng, n) / 70.0
+    values = smooth_values(centres, rng)
+    # About one over the spacing of these clouds: wider shapes make the gaussian and
+    # multiquadric systems singular to working precision at n = 420.
+    epsilon = 10.0 if kernel in EPSILON else None
+    fitted = RBF(centres, values, kernel, smoothing=smoothing, epsilon=epsilon)
+    weights, affine = reference.fit(centres, values, kernel, smoothing, epsilon)
+    queries = face_like_cloud(rng, 300) / 60.0
+    expected = reference.evaluate(queries, centres, weights, affine, kernel, epsilon)
+    # Forward error of two backward-stable solves: cond * eps relative to |values|,
+    # with the larger of the two systems' condition numbers; factor 100 as in
+    # test_core_matches_reference.
+    condition = max(fitted.condition_number,
+                    np.linalg.cond(_reference_system_with(centres, kernel, smoothing, epsilon)))
+    magnitude = np.abs(values).max()
+    tolerance = 1e2 * EPS * condition * magnitude
+    assert tolerance < 1e-3 * magnitude  # the draw is conditioned well enough to say something
+    np.testing.assert_allclose(fitted(queries), expected, rtol=0, atol=tolerance)
+    if smoothing == 0.0:
+        # And it interpolates: the residual at the centres is of the same order.
+        np.testing.assert_allclose(fitted(centres), values, rtol=0, atol=tolerance)
+
+
+def _reference_system_with(centres, kernel, smoothing, epsilon):
+    n = len(centres)
+    matrix = np.zeros((n + 4, n + 4))
+    matrix[:n, :n] = reference.kernel_matrix(kernel, centres, centres, epsilon)
+    matrix[:n, :n] += reference.SMOOTHING_SIGN[kernel] * smoothing * np.eye(n)
+    matrix[:n, n:] = np.column_stack([np.ones(n), centres])
+    matrix[n:, :n] = matrix[:n, n:].T
+    return matrix
+
+
+def _normalised_equilibrated_system(fitted, centres, kernel, smoothing, epsilon):
+    """The saddle-point matrix the fit factorises: centres centred on their bounding
+    box and scaled into the unit ball, polynomial rows and columns scaled to the
+    kernel block."""
+    shift = 0.5 * (centres.min(axis=0) + centres.max(axis=0))
+    scale = np.linalg.norm(centres - shift, axis=1).max()
+    unit = (centres - shift) / scale
+    degree = {"tps": 2, "biharmonic": 1, "triharmonic": 3}.get(kernel, 0)
+    n = len(centres)
+    kernel_block = reference.kernel_matrix(kernel, unit, unit, None if epsilon is None else epsilon * scale)
+    kernel_block += reference.SMOOTHING_SIGN[kernel] * smoothing / scale ** degree * np.eye(n)
+    s = np.abs(kernel_block).max()
+    matrix = np.zeros((n + 4, n + 4))
+    matrix[:n, :n] = kernel_block
+    matrix[:n, n:] = s * np.column_stack([np.ones(n), unit])
+    matrix[n:, :n] = matrix[:n, n:].T
+    return matrix
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("n", [40, 300])
+def test_condition_number_estimates_the_solved_system(kernel, n):
+    rng = np.random.default_rng(n)
+    centres = face_like_cloud(rng, n)
+    epsilon = 0.02 if kernel in EPSILON else None
+    smoothing = 0.5
+    fitted = RBF(centres, centres, kernel, smoothing=smoothing, epsilon=epsilon)
+    exact = np.linalg.cond(_normalised_equilibrated_system(fitted, centres, kernel, smoothing, epsilon), 1)
+    # The estimator finds ||S^-1||_1 from a few solves: never above the true value
+    # (each estimate is |S^-1 x|_1 / |x|_1 for some x; 1e-6 allows for rounding), and
+    # rarely below a third of it (Higham, 1988).
+    assert fitted.condition_number <= exact * (1 + 1e-6)
+    assert fitted.condition_number >= exact / 3
+
+
+_NARROWER_LEVEL_SCRIPT = """
+import numpy as np, tpscore, tpscore._core as core
+from tpscore.reference import rbf as reference
+print(core.simd_level())
+rng = np.random.default_rng(41)
+for n in (150, 700):
+    xy = rng.uniform(-1.0, 1.0, size=(n, 2))
+    centres = np.column_stack([xy, 0.5 * np.exp(-(xy ** 2).sum(axis=1)) + 0.02 * rng.normal(size=n)])
+    values = np.sin(centres @ rng.normal(size=(3, 3))) + 0.01 * rng.normal(size=(n, 3))
+    fitted = tpscore.TPS(centres, values)
+    weights, affine = reference.fit(centres, values)
+    queries = rng.uniform(-1.1, 1.1, size=(5000, 3))
+    expected = reference.evaluate(queries, centres, weights, affine)
+    # As in test_blocked_fit_matches_reference: cond * eps of the values, times 100.
+    bound = 1e2 * np.finfo(float).eps * fitted.condition_number * np.abs(values).max()
+    print(n, np.abs(fitted(queries) - expected).max(), bound)
+"""
+
+
+@pytest.mark.parametrize("level", ["avx2", "baseline"])
+def test_narrower_instruction_sets_fit_and_evaluate_like_the_reference(level):
+    # The Cholesky micro-kernels and the tps evaluation are compiled for AVX-512, AVX2
+    # and baseline x86-64, and a CPU runs the widest it can; TPSCORE_SIMD makes a fresh
+    # process use a narrower one, so each is tested on a machine that has the wider.
+    import os
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-c", _NARROWER_LEVEL_SCRIPT], capture_output=True,
+                            text=True, timeout=300, env={**os.environ, "TPSCORE_SIMD": level})
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.split("\n")
+    # The override only lowers the level: never above what this CPU runs.
+    order = ["baseline", "avx2", "avx512"]
+    assert lines[0] == order[min(order.index(level), order.index(core.simd_level()))]
+    for line in lines[1:]:
+        if line:
+            n, error, bound = line.split()
+            assert float(error) < float(bound), f"n = {n}: error {error} above {bound}"
+
+
+def test_fit_does_not_depend_on_thread_count():
+    rng = np.random.default_rng(21)
+    centres = face_like_cloud(rng, 900)
+    values = centres + rng.normal(scale=2.0, size=centres.shape)
+    fits = []
+    try:
+        for threads in (1, 2, 3):
+            tpscore.set_num_threads(threads)
+            fits.append(TPS(centres, values))
+    finally:
+        tpscore.set_num_threads(0)
+    # Every entry of the factor is computed by one thread with the same operations
+    # in the same order whatever the thread count: bitwise equal.
+    for other in fits[1:]:
+        assert np.array_equal(other.weights, fits[0].weights)
+        assert np.array_equal(other.affine, fits[0].affine)
+        assert other.condition_number == fits[0].condition_number
+
+
+@pytest.mark.parametrize("k", [1, 3])
+def test_evaluation_agrees_with_the_evaluation_matrix_at_every_distance(k):
+    # The evaluation loop and the evaluation matrix compute phi with two different
+    # logarithms (a hand-written one where the CPU has AVX-512); queries from 1e-9 mm
+    # to 1e5 mm away from the centres, and on them, take every range of r^2 through it.
+    rng = np.random.default_rng(30 + k)
+    centres = face_like_landmarks(rng, 40)
+    fitted = RBF(centres, centres[:, :k] + rng.normal(size=(40, k)))
+    directions = rng.normal(size=(2000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    distances = 10.0 ** rng.uniform(-9, 5, size=(2000, 1))
+    queries = np.vstack([centres, centres[rng.integers(0, 40, 2000)] + distances * directions])
+    matrix = fitted.evaluation_matrix(queries)
+    # Both sum the same terms; each term carries a rounding of eps |E_ij| |c_j|.
+    scale = np.abs(matrix) @ np.abs(fitted.coefficients)
+    np.testing.assert_array_less(np.abs(fitted(queries) - matrix @ fitted.coefficients), 64 * EPS * scale + 1e-300)
+
+
 def test_result_does_not_depend_on_thread_count():
     rng = np.random.default_rng(10)
     source = face_like_landmarks(rng, 60)

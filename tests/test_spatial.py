@@ -460,6 +460,25 @@ def test_degenerate_triangles_give_finite_results():
     assert not hits.hit[0] and np.isnan(hits.distances[0]) and hits.triangles[0] == -1
 
 
+def test_closest_point_does_not_depend_on_query_order():
+    # Each query starts from the leaf of the previous query's answer; that changes how
+    # much of the tree it searches, never the answer (distance, then smaller index).
+    rng = np.random.default_rng(23)
+    vertices, faces = grid_mesh(60, 60, rng)
+    rows, cols = np.meshgrid(np.linspace(-1, 60, 90), np.linspace(-1, 60, 90))
+    grid_order = np.column_stack([rows.ravel(), cols.ravel(), rng.normal(scale=1.5, size=rows.size)])
+    shuffle = rng.permutation(len(grid_order))
+    surface = tpscore.MeshSurface(vertices, faces)
+    ordered = surface.closest_point(grid_order, workers=1)
+    shuffled = surface.closest_point(grid_order[shuffle], workers=1)
+    for a, b in zip(ordered, shuffled):
+        assert np.array_equal(a[shuffle], b)
+    sample = rng.choice(len(grid_order), 300, replace=False)
+    want = ref.closest_point_on_mesh(vertices, faces.astype(np.int64), grid_order[sample])
+    assert_closest_points_match(vertices, faces, grid_order[sample],
+                                type(ordered)(*(field[sample] for field in ordered)), want)
+
+
 def test_closest_point_on_mesh_function_and_thread_independence():
     rng = np.random.default_rng(2)
     vertices, faces = grid_mesh(40, 40, rng)

@@ -7,10 +7,10 @@ import warnings
 import numpy as np
 import pytest
 
-from tpscore.motion import MotionOptions, register_surfaces
+from tpscore.expression.registration import MotionOptions, register_surfaces
 from tpscore.face.grid import FaceGrid
 from tpscore.spatial import MeshSurface
-from tpscore.texture import TextureOptions, TextureWarning, track_texture
+from tpscore.expression.texture import TextureOptions, TextureWarning, track_texture
 
 SIZE = 120                  # grid 120 x 120 over [-48, 48] mm: 0.8 mm spacing
 EXTENT = 48.0

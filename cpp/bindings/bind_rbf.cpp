@@ -46,6 +46,7 @@ void bind_rbf(nb::module_& m) {
         .def_prop_ro("bending_energy", [](const tpscore::RbfModel& s) { return s.bending_energy; })
         .def_prop_ro("rcond", [](const tpscore::RbfModel& s) { return s.rcond; })
         .def_prop_ro("scale", [](const tpscore::RbfModel& s) { return s.scale; })
+        .def_prop_ro("size", [](const tpscore::RbfModel& s) { return s.size(); }, "Number of centres n.")
         // Python allocates the output and the kernel fills it in place: a caller
         // evaluating animation frames can reuse one buffer, and the returned array is
         // an ordinary NumPy array (no capsule-owned Eigen storage).

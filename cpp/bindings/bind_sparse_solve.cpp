@@ -10,7 +10,7 @@
 #include <stdexcept>
 #include <string>
 
-#include "tpscore/dense_cholesky.hpp"
+#include "tpscore/supernode_kernels.hpp"
 #include "tpscore/sparse_solve.hpp"
 
 namespace nb = nanobind;
@@ -127,6 +127,6 @@ void bind_sparse_solve(nb::module_& m) {
         .def_prop_ro("max_pivot", &SimplicialPatternCholesky::max_pivot);
 
     m.def(
-        "dense_kernel_isa", []() { return std::string(tpscore::dense_cholesky_kernels().isa); },
+        "dense_kernel_isa", []() { return std::string(tpscore::supernode_kernels().isa); },
         "Instruction set of the dense kernels the sparse factorisation uses on this CPU.");
 }

@@ -104,7 +104,7 @@ void bind_spatial(nb::module_& m) {
                 nb::gil_scoped_release release;
                 new (self) MeshSurface(as_eigen(vertices), as_eigen(faces), leaf_size);
             },
-            "vertices"_a, "faces"_a, "leaf_size"_a = 4)
+            "vertices"_a, "faces"_a, "leaf_size"_a = 8)
         .def_prop_ro("num_triangles", &MeshSurface::num_triangles)
         .def(
             "closest_point",

@@ -3,6 +3,7 @@
 #include <nanobind/nanobind.h>
 
 #include "tpscore/parallel.hpp"
+#include "tpscore/simd.hpp"
 
 namespace nb = nanobind;
 
@@ -17,8 +18,13 @@ void bind_raster(nb::module_& m);
 NB_MODULE(_core, m) {
     m.doc() = "tpscore's compiled kernels (private: use the tpscore package instead)";
     m.def("num_threads", &tpscore::num_threads, "Threads a kernel may use.");
+    m.def("max_threads", &tpscore::max_threads,
+          "The cap on the kernel thread count (4x the hardware threads).");
     m.def("set_num_threads", &tpscore::set_num_threads, nb::arg("n"),
-          "Set the kernel thread count; n <= 0 restores the default.");
+          "Set the kernel thread count; n <= 0 restores the default, larger than "
+          "max_threads() means max_threads().");
+    m.def("simd_level", [] { return tpscore::simd_level_name(tpscore::simd_level()); },
+          "The instruction set of the hand-dispatched kernels (TPSCORE_SIMD lowers it).");
     bind_rbf(m);
     bind_csrbf(m);
     bind_spatial(m);

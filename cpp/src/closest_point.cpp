@@ -7,6 +7,22 @@
 
 #include "tpscore/kdtree.hpp"  // parallel_rows
 
+// The closest-point traversal is compiled for AVX-512, AVX2 and the baseline and
+// picked at load time (one binary for every x86-64 CPU, no -march=native): its leaf
+// test is a loop over a leaf's triangles that the compiler vectorises.
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
+#define TPSCORE_SIMD_CLONES \
+    __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+#else
+#define TPSCORE_SIMD_CLONES
+#endif
+// Inlined into the cloned traversal, so they take its instruction set.
+#if defined(__GNUC__)
+#define TPSCORE_INLINE inline __attribute__((always_inline))
+#else
+#define TPSCORE_INLINE inline
+#endif
+
 namespace tpscore {
 
 namespace {
@@ -119,6 +135,211 @@ inline bool box_interval(const MeshSurface::Node& node, const double* o, const d
     return true;
 }
 
+// --- the vectorised closest-point query -----------------------------------------------
+
+// What the SIMD test needs of each triangle (MeshSurface::blocks_): corner a, edges
+// e0 = b - a and e1 = c - a, their dot products, and whether the triangle is
+// degenerate (1) or not (0). A block holds kLanes values of each field in turn.
+enum TriangleField { kAx, kAy, kAz, kE0x, kE0y, kE0z, kE1x, kE1y, kE1z, kE00, kE01, kE11, kDegenerate,
+                     kTriangleFields };
+constexpr int kLanes = MeshSurface::kMaxLeafSize;
+constexpr std::size_t kBlockSize = kTriangleFields * kLanes;
+
+// Squared distances from q to the kLanes triangles of a block, as
+// closest_point_on_triangle classifies p (same regions, same order of precedence),
+// written branch-free so that the loop runs in SIMD lanes: every region's weights are
+// formed as numerator / denominator and the right pair is selected, so each lane
+// divides once. A degenerate triangle's lane gives +infinity (the caller tests it
+// with closest_point_on_triangle, as its edges). Lanes past a leaf's last triangle
+// repeat it.
+TPSCORE_INLINE void block_squared_distances(const double* block, const double* q, double* out) {
+    const double* ax = block + kAx * kLanes;
+    const double* ay = block + kAy * kLanes;
+    const double* az = block + kAz * kLanes;
+    const double* e0x = block + kE0x * kLanes;
+    const double* e0y = block + kE0y * kLanes;
+    const double* e0z = block + kE0z * kLanes;
+    const double* e1x = block + kE1x * kLanes;
+    const double* e1y = block + kE1y * kLanes;
+    const double* e1z = block + kE1z * kLanes;
+    const double* e00 = block + kE00 * kLanes;
+    const double* e01 = block + kE01 * kLanes;
+    const double* e11 = block + kE11 * kLanes;
+    const double* degenerate = block + kDegenerate * kLanes;
+    const double qx = q[0], qy = q[1], qz = q[2];
+#pragma omp simd
+    for (int i = 0; i < kLanes; ++i) {
+        const double px = qx - ax[i], py = qy - ay[i], pz = qz - az[i];
+        const double d1 = e0x[i] * px + e0y[i] * py + e0z[i] * pz;  // e0 . (p - a)
+        const double d2 = e1x[i] * px + e1y[i] * py + e1z[i] * pz;  // e1 . (p - a)
+        const double d3 = d1 - e00[i], d4 = d2 - e01[i];            // e0, e1 . (p - b)
+        const double d5 = d1 - e01[i], d6 = d2 - e11[i];            // e0, e1 . (p - c)
+        const double va = d3 * d6 - d5 * d4;
+        const double vb = d5 * d2 - d1 * d6;
+        const double vc = d1 * d4 - d3 * d2;
+        // Inside the face, then each region that takes precedence over the ones before.
+        double s = vb, t = vc, denominator = va + vb + vc;
+        const bool bc = va <= 0.0 && d4 - d3 >= 0.0 && d5 - d6 >= 0.0;
+        s = bc ? d5 - d6 : s;
+        t = bc ? d4 - d3 : t;
+        denominator = bc ? (d4 - d3) + (d5 - d6) : denominator;
+        const bool ac = vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0;
+        s = ac ? 0.0 : s;
+        t = ac ? d2 : t;
+        denominator = ac ? d2 - d6 : denominator;
+        const bool corner_c = d6 >= 0.0 && d5 <= d6;
+        s = corner_c ? 0.0 : s;
+        t = corner_c ? 1.0 : t;
+        denominator = corner_c ? 1.0 : denominator;
+        const bool ab = vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0;
+        s = ab ? d1 : s;
+        t = ab ? 0.0 : t;
+        denominator = ab ? d1 - d3 : denominator;
+        const bool corner_b = d3 >= 0.0 && d4 <= d3;
+        s = corner_b ? 1.0 : s;
+        t = corner_b ? 0.0 : t;
+        denominator = corner_b ? 1.0 : denominator;
+        const bool corner_a = d1 <= 0.0 && d2 <= 0.0;
+        s = corner_a ? 0.0 : s;
+        t = corner_a ? 0.0 : t;
+        denominator = corner_a ? 1.0 : denominator;
+        const double inverse = 1.0 / denominator;
+        s *= inverse;
+        t *= inverse;
+        const double vx = px - s * e0x[i] - t * e1x[i];
+        const double vy = py - s * e0y[i] - t * e1y[i];
+        const double vz = pz - s * e0z[i] - t * e1z[i];
+        const double squared = vx * vx + vy * vy + vz * vz;
+        out[i] = degenerate[i] != 0.0 ? kInf : squared;
+    }
+}
+
+struct BestTriangle {
+    double squared_distance = kInf;
+    std::int64_t index = -1;  // original triangle index
+    std::int32_t slot = -1;   // leaf-order position
+};
+
+// The view of a MeshSurface that the query needs (its members are private).
+struct SurfaceView {
+    const MeshSurface::Node* nodes;
+    const MeshSurface::WideNode* wide;
+    std::size_t wide_count;
+    const double* blocks;
+    const std::int32_t* block_of;
+    const double* corners;
+    const std::int64_t* triangle_index;
+    const std::int32_t* leaf_of;
+};
+
+// Offers the triangles of one leaf (BVH node `leaf`) to `best`: the SIMD distances,
+// then the degenerate ones one by one. Ranking is by squared distance, then by
+// original index.
+TPSCORE_INLINE void test_leaf(const SurfaceView& surface, std::int32_t leaf, const double* q, BestTriangle& best) {
+    const MeshSurface::Node& node = surface.nodes[leaf];
+    const double* block = surface.blocks + kBlockSize * static_cast<std::size_t>(surface.block_of[leaf]);
+    double squared[kLanes];
+    block_squared_distances(block, q, squared);
+    for (std::int32_t i = node.begin; i < node.end; ++i) {
+        const int lane = i - node.begin;
+        double d2 = squared[lane];
+        if (block[kDegenerate * kLanes + lane] != 0.0) {
+            const double* tri = surface.corners + 9 * static_cast<std::size_t>(i);
+            d2 = closest_point_on_triangle(q, tri, tri + 3, tri + 6).squared_distance;
+        }
+        const std::int64_t index = surface.triangle_index[i];
+        if (d2 < best.squared_distance || (d2 == best.squared_distance && index < best.index)) {
+            best.squared_distance = d2;
+            best.index = index;
+            best.slot = i;
+        }
+    }
+}
+
+// Squared distances from q to the kWide boxes of a wide node (0 inside; +inf for an
+// empty slot), in SIMD lanes.
+TPSCORE_INLINE void child_box_distances(const MeshSurface::WideNode& node, const double* q, double* out) {
+    const double qx = q[0], qy = q[1], qz = q[2];
+#pragma omp simd
+    for (int c = 0; c < MeshSurface::kWide; ++c) {
+        // The distance outside the box along each axis, 0 inside (selects, not branches).
+        const double bx = node.lo[0][c] - qx, ax = qx - node.hi[0][c];
+        const double by = node.lo[1][c] - qy, ay = qy - node.hi[1][c];
+        const double bz = node.lo[2][c] - qz, az = qz - node.hi[2][c];
+        double dx = bx > ax ? bx : ax, dy = by > ay ? by : ay, dz = bz > az ? bz : az;
+        dx = dx > 0.0 ? dx : 0.0;
+        dy = dy > 0.0 ? dy : 0.0;
+        dz = dz > 0.0 ? dz : 0.0;
+        out[c] = dx * dx + dy * dy + dz * dz;
+    }
+}
+
+// Closest points for query rows [row_begin, row_end).
+TPSCORE_SIMD_CLONES
+void closest_point_rows(const SurfaceView& surface, const PointsRef& queries, std::size_t row_begin,
+                        std::size_t row_end, double* points, std::int64_t* triangles, double* barycentric,
+                        double* distances) {
+    // Entries are wide nodes (>= 0) or leaves (< 0, as in WideNode::child).
+    struct Entry {
+        std::int32_t item;
+        double d2;
+    };
+    Entry stack[kStackSize * MeshSurface::kWide];
+    const MeshSurface::Node* nodes = surface.nodes;
+    std::int32_t previous_leaf = -1;
+    for (std::size_t r = row_begin; r < row_end; ++r) {
+        const double q[3] = {queries(r, 0), queries(r, 1), queries(r, 2)};
+        BestTriangle best;
+        // The previous answer's leaf first: a tight bound before the descent.
+        if (previous_leaf >= 0) test_leaf(surface, previous_leaf, q, best);
+        int top = 0;
+        if (surface.wide_count > 0) stack[top++] = Entry{0, 0.0};
+        while (top > 0) {
+            const Entry entry = stack[--top];
+            // Strictly farther boxes only: a triangle at exactly the best distance may
+            // still win the tie on its index.
+            if (entry.d2 > best.squared_distance) continue;
+            if (entry.item < 0) {
+                const std::int32_t leaf = -entry.item - 1;
+                if (leaf != previous_leaf) test_leaf(surface, leaf, q, best);
+                continue;
+            }
+            const MeshSurface::WideNode& node = surface.wide[entry.item];
+            double d2[MeshSurface::kWide];
+            child_box_distances(node, q, d2);
+            // Push the children within reach (without branches: whether a child is
+            // within reach is data the branch predictor cannot learn), then swap the
+            // nearest to the top so that it is searched first.
+            const int base = top;
+            for (int c = 0; c < MeshSurface::kWide; ++c) {
+                stack[top] = Entry{node.child[c], d2[c]};
+                top += d2[c] <= best.squared_distance ? 1 : 0;  // empty slots are at +inf
+            }
+            int nearest = base;
+            for (int i = base + 1; i < top; ++i) nearest = stack[i].d2 < stack[nearest].d2 ? i : nearest;
+            if (top > base) std::swap(stack[nearest], stack[top - 1]);
+        }
+        double* out_point = points + 3 * r;
+        double* out_bary = barycentric + 3 * r;
+        if (best.index < 0) {
+            for (int i = 0; i < 3; ++i) out_point[i] = out_bary[i] = kNaN;
+            distances[r] = kNaN;
+            triangles[r] = -1;
+            continue;
+        }
+        previous_leaf = surface.leaf_of[best.slot];
+        // The winner's point and weights, by the scalar classification.
+        const double* tri = surface.corners + 9 * static_cast<std::size_t>(best.slot);
+        const TrianglePoint point = closest_point_on_triangle(q, tri, tri + 3, tri + 6);
+        for (int i = 0; i < 3; ++i) {
+            out_point[i] = point.point[i];
+            out_bary[i] = point.barycentric[i];
+        }
+        distances[r] = std::sqrt(point.squared_distance);
+        triangles[r] = best.index;
+    }
+}
+
 }  // namespace
 
 TrianglePoint closest_point_on_triangle(const double* p, const double* a, const double* b,
@@ -209,7 +430,7 @@ bool intersect_line_triangle(const double* o, const double* d, const double* a, 
 }
 
 MeshSurface::MeshSurface(const PointsRef& vertices, const FacesRef& faces, int leaf_size)
-    : leaf_size_(std::max(1, leaf_size)) {
+    : leaf_size_(std::clamp(leaf_size, 1, kMaxLeafSize)) {
     const auto nf = static_cast<std::int32_t>(faces.rows());
     std::vector<double> centroids(3 * static_cast<std::size_t>(nf));
     for (std::int32_t f = 0; f < nf; ++f)
@@ -242,6 +463,89 @@ MeshSurface::MeshSurface(const PointsRef& vertices, const FacesRef& faces, int l
     for (std::int32_t f = 0; f < nf; ++f)
         std::copy_n(corners_.begin() + 9 * triangle_index_[f], 9, permuted.begin() + 9 * f);
     corners_.swap(permuted);
+
+    // The SIMD test's blocks (one per leaf, in leaf order), and each triangle's leaf.
+    const auto stride = static_cast<std::size_t>(nf);
+    leaf_of_.assign(stride, -1);
+    block_of_.assign(nodes_.size(), -1);
+    std::int32_t blocks = 0;
+    for (std::size_t id = 0; id < nodes_.size(); ++id)
+        if (nodes_[id].left < 0) block_of_[id] = blocks++;
+    blocks_.assign(kBlockSize * static_cast<std::size_t>(blocks), 0.0);
+    for (std::size_t id = 0; id < nodes_.size(); ++id) {
+        const Node& leaf = nodes_[id];
+        if (leaf.left >= 0) continue;
+        double* block = blocks_.data() + kBlockSize * static_cast<std::size_t>(block_of_[id]);
+        for (int lane = 0; lane < kLanes; ++lane) {
+            // Lanes past the leaf's last triangle repeat it (same distance, same index).
+            const std::int32_t f = std::min(leaf.begin + lane, leaf.end - 1);
+            const double* a = corners_.data() + 9 * static_cast<std::size_t>(f);
+            double e0[3], e1[3], normal[3];
+            sub(a + 3, a, e0);
+            sub(a + 6, a, e1);
+            cross(e0, e1, normal);
+            const double values[kTriangleFields] = {
+                a[0], a[1], a[2], e0[0], e0[1], e0[2], e1[0], e1[1], e1[2], dot(e0, e0), dot(e0, e1), dot(e1, e1),
+                // The same test as closest_point_on_triangle's.
+                dot(normal, normal) > kDegenerateSin2 * dot(e0, e0) * dot(e1, e1) ? 0.0 : 1.0};
+            for (int field = 0; field < kTriangleFields; ++field) block[field * kLanes + lane] = values[field];
+            if (leaf.begin + lane < leaf.end) leaf_of_[static_cast<std::size_t>(f)] = static_cast<std::int32_t>(id);
+        }
+    }
+    if (!nodes_.empty()) {
+        wide_.reserve(nodes_.size() / 4 + 1);
+        build_wide(0);
+    }
+}
+
+// Collapses the binary subtree at `node` into a wide node: its children are opened,
+// the one with the most triangles first, until kWide children or only leaves remain.
+// The root of a one-leaf tree becomes a wide node with that single leaf.
+std::int32_t MeshSurface::build_wide(std::int32_t node) {
+    std::int32_t children[kWide];
+    int count = 0;
+    if (nodes_[static_cast<std::size_t>(node)].left < 0) {
+        children[count++] = node;
+    } else {
+        children[count++] = nodes_[static_cast<std::size_t>(node)].left;
+        children[count++] = nodes_[static_cast<std::size_t>(node)].right;
+    }
+    while (count < kWide) {
+        int widest = -1;
+        for (int c = 0; c < count; ++c) {
+            const Node& child = nodes_[static_cast<std::size_t>(children[c])];
+            if (child.left >= 0 &&
+                (widest < 0 || child.end - child.begin >
+                                   nodes_[static_cast<std::size_t>(children[widest])].end -
+                                       nodes_[static_cast<std::size_t>(children[widest])].begin))
+                widest = c;
+        }
+        if (widest < 0) break;
+        const Node& opened = nodes_[static_cast<std::size_t>(children[widest])];
+        children[widest] = opened.left;
+        children[count++] = opened.right;
+    }
+    const auto id = static_cast<std::int32_t>(wide_.size());
+    wide_.emplace_back();
+    WideNode wide{};
+    wide.count = count;
+    for (int c = 0; c < kWide; ++c) {
+        for (int a = 0; a < 3; ++a) {
+            wide.lo[a][c] = kInf;
+            wide.hi[a][c] = -kInf;
+        }
+        wide.child[c] = 0;
+    }
+    for (int c = 0; c < count; ++c) {
+        const Node& child = nodes_[static_cast<std::size_t>(children[c])];
+        for (int a = 0; a < 3; ++a) {
+            wide.lo[a][c] = child.lo[a];
+            wide.hi[a][c] = child.hi[a];
+        }
+        wide.child[c] = child.left < 0 ? -children[c] - 1 : build_wide(children[c]);
+    }
+    wide_[static_cast<std::size_t>(id)] = wide;
+    return id;
 }
 
 std::int32_t MeshSurface::build(std::int32_t begin, std::int32_t end,
@@ -305,61 +609,11 @@ std::int32_t MeshSurface::build(std::int32_t begin, std::int32_t end,
 
 void MeshSurface::closest_point(const PointsRef& queries, double* points, std::int64_t* triangles,
                                 double* barycentric, double* distances, int workers) const {
+    const SurfaceView surface{nodes_.data(),   wide_.data(),           wide_.size(),   blocks_.data(),
+                              block_of_.data(), corners_.data(), triangle_index_.data(), leaf_of_.data()};
     const auto m = static_cast<std::size_t>(queries.rows());
     parallel_rows(m, kRowChunk, workers, [&](std::size_t row_begin, std::size_t row_end) {
-        struct Entry {
-            std::int32_t node;
-            double d2;
-        };
-        Entry stack[kStackSize];
-        for (std::size_t r = row_begin; r < row_end; ++r) {
-            const double q[3] = {queries(r, 0), queries(r, 1), queries(r, 2)};
-            TrianglePoint best;
-            best.squared_distance = kInf;
-            std::int64_t best_index = -1;
-            int top = 0;
-            if (!nodes_.empty()) stack[top++] = Entry{0, box_distance(nodes_[0], q)};
-            while (top > 0) {
-                const Entry entry = stack[--top];
-                // Strictly farther boxes only: a triangle at exactly the best distance may
-                // still win the tie on its index.
-                if (entry.d2 > best.squared_distance) continue;
-                const Node& node = nodes_[static_cast<std::size_t>(entry.node)];
-                if (node.left < 0) {
-                    for (std::int32_t i = node.begin; i < node.end; ++i) {
-                        const double* tri = corners_.data() + 9 * static_cast<std::size_t>(i);
-                        const TrianglePoint candidate =
-                            closest_point_on_triangle(q, tri, tri + 3, tri + 6);
-                        const std::int64_t index = triangle_index_[static_cast<std::size_t>(i)];
-                        if (candidate.squared_distance < best.squared_distance ||
-                            (candidate.squared_distance == best.squared_distance && index < best_index)) {
-                            best = candidate;
-                            best_index = index;
-                        }
-                    }
-                    continue;
-                }
-                Entry near{node.left, box_distance(nodes_[static_cast<std::size_t>(node.left)], q)};
-                Entry far{node.right, box_distance(nodes_[static_cast<std::size_t>(node.right)], q)};
-                if (far.d2 < near.d2) std::swap(near, far);
-                if (far.d2 <= best.squared_distance) stack[top++] = far;
-                if (near.d2 <= best.squared_distance) stack[top++] = near;  // popped first
-            }
-            double* out_point = points + 3 * r;
-            double* out_bary = barycentric + 3 * r;
-            if (best_index < 0) {
-                for (int i = 0; i < 3; ++i) out_point[i] = out_bary[i] = kNaN;
-                distances[r] = kNaN;
-                triangles[r] = -1;
-                continue;
-            }
-            for (int i = 0; i < 3; ++i) {
-                out_point[i] = best.point[i];
-                out_bary[i] = best.barycentric[i];
-            }
-            distances[r] = std::sqrt(best.squared_distance);
-            triangles[r] = best_index;
-        }
+        closest_point_rows(surface, queries, row_begin, row_end, points, triangles, barycentric, distances);
     });
 }
 

@@ -1,16 +1,21 @@
 #include "tpscore/rbf.hpp"
 
+#include <Eigen/Householder>
 #include <Eigen/LU>
+#include <Eigen/QR>
 #include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <cstdio>
 #include <limits>
+#include <optional>
 #include <stdexcept>
 #include <string>
 #include <vector>
 
+#include "tpscore/dense_cholesky.hpp"
 #include "tpscore/parallel.hpp"
+#include "tpscore/simd.hpp"
 
 // glibc declares the vector variants of log and exp (libmvec: _ZGVbN2v_log,
 // _ZGVdN4v_log, _ZGVeN8v_log, ...) only under -ffast-math (bits/math-vector.h).
@@ -28,8 +33,12 @@ double exp(double) noexcept __attribute__((simd("notinbranch")));
 // no -march=native. Measured above; x86-64-v3 brings AVX2 + FMA, v4 AVX-512.
 #define TPSCORE_SIMD_CLONES \
     __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+// The tps evaluation has a hand-written AVX-512 loop besides (see accumulate_tps_avx512).
+#define TPSCORE_AVX512_TPS 1
+#include <immintrin.h>
 #else
 #define TPSCORE_SIMD_CLONES
+#define TPSCORE_AVX512_TPS 0
 #endif
 
 #if defined(__GNUC__)
@@ -144,6 +153,131 @@ void accumulate_block(RbfKernel kernel, double e2, const double* qx, const doubl
     }
 }
 
+#if TPSCORE_AVX512_TPS
+// --- the tps evaluation, by hand for AVX-512 ------------------------------------------
+//
+// At 22,500 x 60 the tps evaluation is nearly all logarithms: glibc's vector log
+// (libmvec) costs 0.89 ns per value on one AVX-512 core, the rest of the loop about
+// 0.6 ns per pair. This log, for the arguments the kernel gives it (x >= DBL_MIN,
+// finite or +inf), splits x = m 2^k with m in [1, 2) by the instructions made for it
+// (getmant, getexp), looks up c ~ 1/m in a 16-entry table held in two registers, and
+// sums k log 2 - log c + log1p(mc - 1) with |mc - 1| < 0.031, where ten Taylor terms
+// leave an error below 1e-17. Its error is at most one unit in the last place of
+// max(1, |log x|) (checked against std::log over 2^20 values from 1e-17 to 1e17):
+// absolute, not relative, accuracy just below x = 1 (where -log 2 + log m cancel),
+// which is what a sum of weighted kernel values needs; log 1 is exactly 0.
+
+struct LogTable {
+    alignas(64) double reciprocal[16];  // c_j: 1 / (centre of [1 + j/16, 1 + (j+1)/16)), rounded
+    alignas(64) double minus_log[16];   // -log(c_j) for the rounded c_j
+    LogTable() {
+        for (int j = 0; j < 16; ++j) {
+            reciprocal[j] = 1.0 / (1.0 + (j + 0.5) / 16.0);
+            minus_log[j] = -std::log(reciprocal[j]);
+        }
+    }
+};
+const LogTable log_table;
+
+struct LogConstants {
+    __m512d reciprocal_low, reciprocal_high, minus_log_low, minus_log_high;
+};
+
+__attribute__((target("arch=x86-64-v4"))) TPSCORE_ALWAYS_INLINE LogConstants log_constants() {
+    return {_mm512_load_pd(log_table.reciprocal), _mm512_load_pd(log_table.reciprocal + 8),
+            _mm512_load_pd(log_table.minus_log), _mm512_load_pd(log_table.minus_log + 8)};
+}
+
+__attribute__((target("arch=x86-64-v4"))) TPSCORE_ALWAYS_INLINE __m512d log_avx512(__m512d x,
+                                                                                   const LogConstants& t) {
+    const __m512d one = _mm512_set1_pd(1.0);
+    const __m512d m = _mm512_getmant_pd(x, _MM_MANT_NORM_1_2, _MM_MANT_SIGN_src);
+    const __m512d k = _mm512_getexp_pd(x);  // floor(log2 x): x = m 2^k
+    // The interval of m: trunc(16 m - 16) in 0..15 (16 m - 16 < 16 for every m < 2).
+    const __m512d sixteen = _mm512_set1_pd(16.0);
+    const __m512i j = _mm512_cvttpd_epi64(_mm512_fmsub_pd(m, sixteen, sixteen));
+    const __m512d c = _mm512_permutex2var_pd(t.reciprocal_low, j, t.reciprocal_high);
+    const __m512d minus_log_c = _mm512_permutex2var_pd(t.minus_log_low, j, t.minus_log_high);
+    const __m512d r = _mm512_fmsub_pd(m, c, one);  // one rounding: m c - 1 to full precision
+    __m512d p = _mm512_set1_pd(-1.0 / 10.0);
+    p = _mm512_fmadd_pd(p, r, _mm512_set1_pd(1.0 / 9.0));
+    p = _mm512_fmadd_pd(p, r, _mm512_set1_pd(-1.0 / 8.0));
+    p = _mm512_fmadd_pd(p, r, _mm512_set1_pd(1.0 / 7.0));
+    p = _mm512_fmadd_pd(p, r, _mm512_set1_pd(-1.0 / 6.0));
+    p = _mm512_fmadd_pd(p, r, _mm512_set1_pd(1.0 / 5.0));
+    p = _mm512_fmadd_pd(p, r, _mm512_set1_pd(-1.0 / 4.0));
+    p = _mm512_fmadd_pd(p, r, _mm512_set1_pd(1.0 / 3.0));
+    p = _mm512_fmadd_pd(p, r, _mm512_set1_pd(-1.0 / 2.0));
+    const __m512d log1p_r = _mm512_fmadd_pd(p, _mm512_mul_pd(r, r), r);
+    return _mm512_add_pd(_mm512_fmadd_pd(k, _mm512_set1_pd(0.6931471805599453), minus_log_c), log1p_r);
+}
+
+// acc (Kdim rows of kBlock) += sum_j w_j phi(|q - c_j|) for the tps kernel, as
+// accumulate_block_impl does, with the sums held in registers: 16 queries (two
+// vectors) at a time meet every centre.
+template <int Kdim>
+__attribute__((target("arch=x86-64-v4"))) void accumulate_tps_avx512(const double* qx, const double* qy,
+                                                                     const double* qz, const double* cx,
+                                                                     const double* cy, const double* cz,
+                                                                     std::int64_t n, const double* weights,
+                                                                     double* acc) {
+    const LogConstants table = log_constants();
+    const __m512d tiny = _mm512_set1_pd(std::numeric_limits<double>::min());
+    for (std::int64_t q = 0; q < kBlock; q += 16) {
+        const __m512d x0 = _mm512_load_pd(qx + q), x1 = _mm512_load_pd(qx + q + 8);
+        const __m512d y0 = _mm512_load_pd(qy + q), y1 = _mm512_load_pd(qy + q + 8);
+        const __m512d z0 = _mm512_load_pd(qz + q), z1 = _mm512_load_pd(qz + q + 8);
+        __m512d sum0[Kdim], sum1[Kdim];
+        for (int c = 0; c < Kdim; ++c) {
+            sum0[c] = _mm512_loadu_pd(acc + c * kBlock + q);
+            sum1[c] = _mm512_loadu_pd(acc + c * kBlock + q + 8);
+        }
+        for (std::int64_t j = 0; j < n; ++j) {
+            const __m512d px = _mm512_set1_pd(cx[j]), py = _mm512_set1_pd(cy[j]), pz = _mm512_set1_pd(cz[j]);
+            const __m512d dx0 = _mm512_sub_pd(x0, px), dx1 = _mm512_sub_pd(x1, px);
+            const __m512d dy0 = _mm512_sub_pd(y0, py), dy1 = _mm512_sub_pd(y1, py);
+            const __m512d dz0 = _mm512_sub_pd(z0, pz), dz1 = _mm512_sub_pd(z1, pz);
+            // d2 + DBL_MIN, which is d2 itself for any d2 above 1e-292 and keeps the log
+            // finite at a centre, where U = DBL_MIN log(DBL_MIN) = -1.6e-305 stands for 0
+            // (phi_of_d2 multiplies by d2 instead, one more operation a pair).
+            const __m512d d0 = _mm512_fmadd_pd(dz0, dz0, _mm512_fmadd_pd(dy0, dy0, _mm512_fmadd_pd(dx0, dx0, tiny)));
+            const __m512d d1 = _mm512_fmadd_pd(dz1, dz1, _mm512_fmadd_pd(dy1, dy1, _mm512_fmadd_pd(dx1, dx1, tiny)));
+            const __m512d u0 = _mm512_mul_pd(d0, log_avx512(d0, table));
+            const __m512d u1 = _mm512_mul_pd(d1, log_avx512(d1, table));
+            for (int c = 0; c < Kdim; ++c) {
+                const __m512d w = _mm512_set1_pd(weights[c * n + j]);
+                sum0[c] = _mm512_fmadd_pd(w, u0, sum0[c]);
+                sum1[c] = _mm512_fmadd_pd(w, u1, sum1[c]);
+            }
+        }
+        for (int c = 0; c < Kdim; ++c) {
+            _mm512_storeu_pd(acc + c * kBlock + q, sum0[c]);
+            _mm512_storeu_pd(acc + c * kBlock + q + 8, sum1[c]);
+        }
+    }
+}
+static_assert(kBlock % 16 == 0, "accumulate_tps_avx512 takes 16 queries at a time");
+
+const bool has_avx512 = simd_level() == SimdLevel::avx512;
+#endif
+
+// acc += sum_j w_j phi(|q - c_j|) for one block of queries, by the best loop this
+// CPU runs.
+void accumulate(RbfKernel kernel, double e2, const double* qx, const double* qy, const double* qz,
+                const double* cx, const double* cy, const double* cz, std::int64_t n, const double* weights,
+                std::int64_t k, double* acc) {
+#if TPSCORE_AVX512_TPS
+    if (kernel == RbfKernel::tps && has_avx512 && k <= 3) {
+        switch (k) {
+            case 1: accumulate_tps_avx512<1>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
+            case 2: accumulate_tps_avx512<2>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
+            default: accumulate_tps_avx512<3>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
+        }
+    }
+#endif
+    accumulate_block(kernel, e2, qx, qy, qz, cx, cy, cz, n, weights, k, acc);
+}
+
 template <RbfKernel Kernel>
 TPSCORE_ALWAYS_INLINE void phi_row_impl(double e2, double x, double y, double z,
                                         const double* cx, const double* cy, const double* cz,
@@ -168,6 +302,47 @@ void phi_row(RbfKernel kernel, double e2, double x, double y, double z, const do
     }
 }
 
+// What the fit needs from column j of K' (n values) while it is in cache: the sum and
+// the largest of its absolute values (for ||S||_1 and the polynomial scale), and its
+// products with the four columns of V (n x 4, column-major), out[2..5].
+TPSCORE_SIMD_CLONES
+void column_statistics(const double* column, std::int64_t n, const double* v, double* out) {
+    const double *v0 = v, *v1 = v + n, *v2 = v + 2 * n, *v3 = v + 3 * n;
+    double sum = 0.0, largest = 0.0, d0 = 0.0, d1 = 0.0, d2 = 0.0, d3 = 0.0;
+#pragma omp simd reduction(+ : sum, d0, d1, d2, d3) reduction(max : largest)
+    for (std::int64_t i = 0; i < n; ++i) {
+        const double value = column[i];
+        sum += std::abs(value);
+        largest = std::max(largest, std::abs(value));
+        d0 += value * v0[i];
+        d1 += value * v1[i];
+        d2 += value * v2[i];
+        d3 += value * v3[i];
+    }
+    out[0] = sum;
+    out[1] = largest;
+    out[2] = d0;
+    out[3] = d1;
+    out[4] = d2;
+    out[5] = d3;
+}
+
+// Rows c..n-1 of column c of Q^T K' Q (times sign), in place over K':
+// column[r] = sign (column[r] - Z(r,:) V(c,:)^T - V(r,:) Z(c,:)^T); V and Z are n x 4,
+// column-major.
+TPSCORE_SIMD_CLONES
+void project_column(double* column, std::int64_t c, std::int64_t n, const double* v, const double* z,
+                    double sign) {
+    const double *v0 = v, *v1 = v + n, *v2 = v + 2 * n, *v3 = v + 3 * n;
+    const double *z0 = z, *z1 = z + n, *z2 = z + 2 * n, *z3 = z + 3 * n;
+    const double vc0 = v0[c], vc1 = v1[c], vc2 = v2[c], vc3 = v3[c];
+    const double zc0 = z0[c], zc1 = z1[c], zc2 = z2[c], zc3 = z3[c];
+#pragma omp simd
+    for (std::int64_t r = c; r < n; ++r)
+        column[r] = sign * (column[r] - ((z0[r] * vc0 + z1[r] * vc1) + (z2[r] * vc2 + z3[r] * vc3) +
+                                         (v0[r] * zc0 + v1[r] * zc1) + (v2[r] * zc2 + v3[r] * zc3)));
+}
+
 bool uses_epsilon(RbfKernel kernel) {
     return kernel == RbfKernel::multiquadric || kernel == RbfKernel::gaussian;
 }
@@ -188,6 +363,344 @@ std::string format_number(double value) {
     char buffer[64];
     std::snprintf(buffer, sizeof buffer, "%.3g", value);
     return buffer;
+}
+
+// --- the fit's linear system ---------------------------------------------------------
+//
+// In normalised coordinates the fit solves the equilibrated saddle-point system
+//
+//   S [W; A / s] = [Y; 0],   S = [ K'   s P ]   K' = K + sign lambda' I (n x n),
+//                                [ s P^T  0 ]   P = [1 x y z] (n x 4), s = max |K'_ij|,
+//
+// s scaling the polynomial rows and columns to the kernel block (without it, large
+// smoothing makes S badly scaled, rcond ~ 1 / lambda'^2, while the problem is not).
+//
+// Every kernel here makes sign * K' positive definite on the null space of P^T:
+// tps (r^2 log r^2) and triharmonic (r^3) are conditionally positive definite of
+// order 2, biharmonic (r) and multiquadric conditionally negative definite of order 1,
+// the gaussian positive definite, and lambda' >= 0 only adds to that. The fit uses it
+// (the null-space method): with the QR factorisation P = Q [R; 0], Q = [Q1 Q2], any W
+// with s P^T W = G is W = Q [z1; z2] with z1 = R^{-T} G / s, and
+//
+//   (Q2^T K' Q2) z2 = Q2^T Y - Q2^T K' Q1 z1,     R A = Q1^T (Y - K' W),
+//
+// where sign * Q2^T K' Q2 is symmetric positive definite: a Cholesky factorisation,
+// n^3 / 3 flops, half of an LU of S, stable without pivoting. Should rounding make
+// that matrix indefinite (centres that nearly coincide, a gaussian far too wide),
+// the fit falls back to an LU of S, which then reports the singularity.
+class ProjectedSystem {
+public:
+    /// Builds K' for the normalised centres (cx, cy, cz; n each) and projects it.
+    ProjectedSystem(const double* cx, const double* cy, const double* cz, std::int64_t n, RbfKernel kernel,
+                    double e2, double diagonal_shift)
+        : n_(n), sign_(rbf_smoothing_sign(kernel)) {
+        // Q as I - V T V^T (compact WY form of the 4 Householder reflections).
+        Eigen::Matrix<double, Eigen::Dynamic, 4> polynomial(n, 4);
+        for (std::int64_t i = 0; i < n; ++i) polynomial.row(i) << 1.0, cx[i], cy[i], cz[i];
+        const Eigen::HouseholderQR<Eigen::MatrixXd> qr(polynomial);
+        r_ = qr.matrixQR().topRows(4).triangularView<Eigen::Upper>();
+        v_ = Eigen::MatrixXd::Zero(n, 4);
+        for (int q = 0; q < 4; ++q) {
+            v_(q, q) = 1.0;
+            v_.col(q).tail(n - q - 1) = qr.matrixQR().col(q).tail(n - q - 1);
+        }
+        t_.setZero();
+        for (int q = 0; q < 4; ++q) {
+            const double tau = qr.hCoeffs()[q];
+            t_(q, q) = tau;
+            if (q > 0) {
+                const Eigen::VectorXd products = v_.leftCols(q).transpose() * v_.col(q);
+                const Eigen::VectorXd column = t_.topLeftCorner(q, q) * products;  // T is upper triangular
+                t_.col(q).head(q) = -tau * column;
+            }
+        }
+
+        // K' column by column (it is symmetric), with what the projection and the
+        // condition estimate need from each column while it is in cache: K' V, the
+        // column's absolute sum and largest entry. Each column is one task's, so the
+        // sums do not depend on the thread count.
+        matrix_.resize(n, n);
+        diagonal_.resize(n);
+        Eigen::MatrixXd kv(n, 4);
+        Eigen::VectorXd column_sums(n), column_max(n);
+        // A column costs about 2n ns (phi and the sums): at least ~100 us per thread.
+        const auto min_columns = static_cast<std::size_t>(std::max<std::int64_t>(1, 50000 / n));
+        parallel_for(static_cast<std::size_t>(n), min_columns, [&](std::size_t begin, std::size_t end) {
+            for (std::size_t jj = begin; jj < end; ++jj) {
+                const auto j = static_cast<std::int64_t>(jj);
+                double* column = matrix_.col(j).data();
+                phi_row(kernel, e2, cx[j], cy[j], cz[j], cx, cy, cz, n, column);
+                column[j] += diagonal_shift;
+                diagonal_[j] = column[j];
+                double statistics[6];
+                column_statistics(column, n, v_.data(), statistics);
+                column_sums[j] = statistics[0];
+                column_max[j] = statistics[1];
+                // Row j of K' V is column j of K' times V (K' is symmetric).
+                kv.row(j) << statistics[2], statistics[3], statistics[4], statistics[5];
+            }
+        });
+        polynomial_scale_ = column_max.maxCoeff();
+        if (!(polynomial_scale_ > 0.0) || !std::isfinite(polynomial_scale_)) polynomial_scale_ = 1.0;
+        // ||S||_1: the largest absolute column sum, kernel columns and polynomial columns.
+        norm1_ = 0.0;
+        for (std::int64_t j = 0; j < n; ++j)
+            norm1_ = std::max(norm1_, column_sums[j] + polynomial_scale_ * (1.0 + std::abs(cx[j]) +
+                                                                            std::abs(cy[j]) + std::abs(cz[j])));
+        norm1_ = std::max(norm1_, polynomial_scale_ * polynomial.cwiseAbs().colwise().sum().maxCoeff());
+
+        // Q^T K' Q = K' - (Z V^T + V Z^T) with Z = K'V T - V (T^T V^T K'V T) / 2: one
+        // symmetric rank-8 update, written (times sign) into the lower triangle while
+        // the strict upper triangle keeps K' (for residuals and the LU fallback).
+        const Eigen::Matrix4d m = v_.transpose() * kv;
+        const Eigen::MatrixXd z = kv * t_ - 0.5 * v_ * (t_.transpose() * m * t_);
+        const double sign = sign_;
+        constexpr std::int64_t kColumns = 32;
+        const std::int64_t blocks = (n + kColumns - 1) / kColumns;
+        std::atomic<std::int64_t> next{0};
+        // A block of columns costs about 8n ns: at least ~100 us per thread.
+        const auto min_blocks = static_cast<std::size_t>(std::max<std::int64_t>(1, 12500 / n));
+        parallel_for(static_cast<std::size_t>(blocks), min_blocks,
+                     [&](std::size_t, std::size_t) {
+                         for (;;) {
+                             const std::int64_t b = next.fetch_add(1, std::memory_order_relaxed);
+                             if (b >= blocks) break;
+                             for (std::int64_t c = b * kColumns; c < std::min(n, (b + 1) * kColumns); ++c)
+                                 project_column(matrix_.col(c).data(), c, n, v_.data(), z.data(), sign);
+                         }
+                     });
+    }
+
+    /// Factorises sign * Q2^T K' Q2; false if it is not numerically positive definite.
+    bool factor() { return cholesky_factor(n_ - 4, projected_block(), n_) < 0; }
+
+    double norm1() const { return norm1_; }
+    double polynomial_scale() const { return polynomial_scale_; }
+
+    /// Overwrites each column [f; g] of x ((n + 4) x c) with S^{-1} [f; g].
+    ///
+    /// The products with the n x 4 factors (V, Q2^T K' Q1) are written as loops over
+    /// their 4 columns: Eigen's general matrix product costs microseconds of setup
+    /// each, which at n = 100 was most of the fit.
+    void solve(Eigen::MatrixXd& x) const {
+        const std::int64_t n = n_;
+        const std::int64_t m = n - 4;
+        const std::int64_t columns = x.cols();
+        const double s = polynomial_scale_;
+        const double sign = sign_;
+        const double* b21 = matrix_.data() + 4;  // sign Q2^T K' Q1: (m, 4), leading dimension n
+        Eigen::Matrix<double, 4, Eigen::Dynamic> z1(4, columns), qf1(4, columns);
+        for (std::int64_t col = 0; col < columns; ++col) {
+            double* f = x.col(col).data();  // f = x[0:n], g = x[n:n+4]
+            // z1 = R^{-T} g / s.
+            Eigen::Vector4d z = Eigen::Map<const Eigen::Vector4d>(f + n) / s;
+            r_.transpose().triangularView<Eigen::Lower>().solveInPlace(z);
+            z1.col(col) = z;
+            // f <- Q^T f; its tail becomes the right-hand side for z2:
+            // sign (Q^T f)[4:] - sign Q2^T K' Q1 z1.
+            apply_q(f, true);
+            qf1.col(col) = Eigen::Map<const Eigen::Vector4d>(f);
+            double* tail = f + 4;
+#pragma omp simd
+            for (std::int64_t i = 0; i < m; ++i)
+                tail[i] = sign * tail[i] - (b21[i] * z[0] + b21[i + n] * z[1] + b21[i + 2 * n] * z[2] +
+                                            b21[i + 3 * n] * z[3]);
+        }
+        // All columns at once: each pass reads the factor once.
+        triangular_solve(m, projected_block(), n, false, x.data() + 4, x.rows(), columns);
+        triangular_solve(m, projected_block(), n, true, x.data() + 4, x.rows(), columns);
+        const Eigen::Matrix4d b11 = block11();
+        for (std::int64_t col = 0; col < columns; ++col) {
+            double* f = x.col(col).data();
+            const double* z2 = f + 4;
+            // R a = (Q^T f)[0:4] - sign (B11 z1 + B21^T z2).
+            Eigen::Vector4d coupling = b11 * z1.col(col);
+            for (int q = 0; q < 4; ++q) {
+                const double* column = b21 + q * n;
+                double dot = 0.0;
+#pragma omp simd reduction(+ : dot)
+                for (std::int64_t i = 0; i < m; ++i) dot += column[i] * z2[i];
+                coupling[q] += dot;
+            }
+            Eigen::Vector4d affine = qf1.col(col) - sign * coupling;
+            r_.triangularView<Eigen::Upper>().solveInPlace(affine);
+            // W = Q [z1; z2].
+            for (int q = 0; q < 4; ++q) f[q] = z1(q, col);
+            apply_q(f, false);
+            for (int q = 0; q < 4; ++q) f[n + q] = affine[q] / s;
+        }
+    }
+
+    /// K' w for w (n x c), from the strict upper triangle and the diagonal.
+    Eigen::MatrixXd kernel_times(const Eigen::MatrixXd& w) const {
+        Eigen::MatrixXd product(n_, w.cols());
+        symmetric_multiply(n_, matrix_.data(), n_, diagonal_.data(), w.data(), w.rows(), product.data(),
+                           product.rows(), w.cols());
+        return product;
+    }
+
+    /// S x for x ((n + 4) x c), given K' times x's top rows.
+    Eigen::MatrixXd times(const Eigen::MatrixXd& x, const Eigen::MatrixXd& kernel_product,
+                          const double* cx, const double* cy, const double* cz) const {
+        const std::int64_t n = n_;
+        const double s = polynomial_scale_;
+        Eigen::MatrixXd product(n + 4, x.cols());
+        for (std::int64_t q = 0; q < x.cols(); ++q) {
+            const double a0 = x(n, q), a1 = x(n + 1, q), a2 = x(n + 2, q), a3 = x(n + 3, q);
+            double g0 = 0.0, g1 = 0.0, g2 = 0.0, g3 = 0.0;
+            for (std::int64_t i = 0; i < n; ++i) {
+                const double wi = x(i, q);
+                product(i, q) = kernel_product(i, q) + s * (a0 + cx[i] * a1 + cy[i] * a2 + cz[i] * a3);
+                g0 += wi;
+                g1 += cx[i] * wi;
+                g2 += cy[i] * wi;
+                g3 += cz[i] * wi;
+            }
+            product(n, q) = s * g0;
+            product(n + 1, q) = s * g1;
+            product(n + 2, q) = s * g2;
+            product(n + 3, q) = s * g3;
+        }
+        return product;
+    }
+
+    /// S itself, for the LU fallback.
+    Eigen::MatrixXd saddle_point_matrix(const double* cx, const double* cy, const double* cz) const {
+        const std::int64_t n = n_;
+        const double s = polynomial_scale_;
+        Eigen::MatrixXd system(n + 4, n + 4);
+        for (std::int64_t j = 0; j < n; ++j) {
+            for (std::int64_t i = 0; i < j; ++i) system(i, j) = system(j, i) = matrix_(i, j);
+            system(j, j) = diagonal_[j];
+            const double row[4] = {s, s * cx[j], s * cy[j], s * cz[j]};
+            for (int q = 0; q < 4; ++q) system(n + q, j) = system(j, n + q) = row[q];
+        }
+        system.bottomRightCorner(4, 4).setZero();
+        return system;
+    }
+
+private:
+    // y <- Q^T y (`transpose`) or Q y in place, y n values: y - V T^T V^T y or y - V T V^T y.
+    void apply_q(double* y, bool transpose) const {
+        const std::int64_t n = n_;
+        const double *v0 = v_.col(0).data(), *v1 = v_.col(1).data(), *v2 = v_.col(2).data(),
+                     *v3 = v_.col(3).data();
+        double d0 = 0.0, d1 = 0.0, d2 = 0.0, d3 = 0.0;
+#pragma omp simd reduction(+ : d0, d1, d2, d3)
+        for (std::int64_t i = 0; i < n; ++i) {
+            d0 += v0[i] * y[i];
+            d1 += v1[i] * y[i];
+            d2 += v2[i] * y[i];
+            d3 += v3[i] * y[i];
+        }
+        const Eigen::Vector4d products(d0, d1, d2, d3);
+        const Eigen::Vector4d c = transpose ? Eigen::Vector4d(t_.transpose() * products)
+                                            : Eigen::Vector4d(t_ * products);
+#pragma omp simd
+        for (std::int64_t i = 0; i < n; ++i) y[i] -= v0[i] * c[0] + v1[i] * c[1] + v2[i] * c[2] + v3[i] * c[3];
+    }
+
+    double* projected_block() { return matrix_.data() + 4 + 4 * n_; }
+    const double* projected_block() const { return matrix_.data() + 4 + 4 * n_; }
+    // sign * Q1^T K' Q1, from the lower triangle.
+    Eigen::Matrix4d block11() const {
+        Eigen::Matrix4d b;
+        for (int j = 0; j < 4; ++j)
+            for (int i = j; i < 4; ++i) b(i, j) = b(j, i) = matrix_(i, j);
+        return b;
+    }
+
+    std::int64_t n_;
+    double sign_;
+    Eigen::MatrixXd matrix_;     // lower: sign Q^T K' Q, then its factor; strict upper: K'
+    Eigen::VectorXd diagonal_;   // the diagonal of K'
+    Eigen::MatrixXd v_;          // (n, 4) Householder vectors, unit diagonal
+    Eigen::Matrix4d t_;          // Q = I - V T V^T
+    Eigen::Matrix4d r_;          // P = Q [R; 0]
+    double polynomial_scale_ = 1.0;
+    double norm1_ = 0.0;
+};
+
+// sign(x) as +-1, +1 for 0: the estimator's sign vectors.
+Eigen::VectorXd signs(const Eigen::VectorXd& x) {
+    return x.unaryExpr([](double v) { return v >= 0.0 ? 1.0 : -1.0; });
+}
+
+std::int64_t largest_magnitude(const Eigen::VectorXd& x) {
+    Eigen::Index index = 0;
+    x.cwiseAbs().maxCoeff(&index);
+    return index;
+}
+
+// Solves S [W; A'] = [values; 0] by the null-space Cholesky: the solution, the
+// estimate of rcond(S) (Hager and Higham's 1-norm estimator of ||S^{-1}||_1, as in
+// LAPACK's dlacn2), and trace(W^T K' W) for the energy. Returns false when the
+// projected matrix is not numerically positive definite (K' is then still whole, in
+// the upper triangle, for the LU). The estimator's solves share passes over the factor
+// with the solution and its refinement: a pass costs about as much for several
+// right-hand sides as for one, since reading the factor is what takes the time.
+bool solve_by_cholesky(ProjectedSystem& system, const Eigen::MatrixXd& rhs, const double* cx,
+                       const double* cy, const double* cz, Eigen::MatrixXd& solution, double& rcond,
+                       double& quadratic_form) {
+    if (!system.factor()) return false;
+    const std::int64_t size = rhs.rows();
+    const std::int64_t n = size - 4;
+    const std::int64_t k = rhs.cols();
+    // Pass 1: the solution and the estimator's first vector, e / size.
+    Eigen::MatrixXd batch(size, k + 1);
+    batch.leftCols(k) = rhs;
+    batch.col(k).setConstant(1.0 / static_cast<double>(size));
+    system.solve(batch);
+    solution = batch.leftCols(k);
+    double estimate = batch.col(k).lpNorm<1>();
+    Eigen::VectorXd sign_vector = signs(batch.col(k));
+
+    // Pass 2: one step of iterative refinement (it recovers the digits lost to the
+    // residual, which matters when values carry a large offset), and S^{-T} sign(v)
+    // (S is symmetric).
+    const Eigen::MatrixXd weights0 = solution.topRows(n);
+    const Eigen::MatrixXd kernel0 = system.kernel_times(weights0);
+    batch.leftCols(k) = rhs - system.times(solution, kernel0, cx, cy, cz);
+    batch.col(k) = sign_vector;
+    system.solve(batch);
+    const Eigen::MatrixXd correction = batch.topLeftCorner(n, k);
+    solution += batch.leftCols(k);
+    // trace(W^T K' W) with W = W0 + dW, to first order in the correction:
+    // W0^T K' W0 + 2 dW^T K' W0, leaving out dW^T K' dW, which is ~(cond eps)^2 relative.
+    quadratic_form = ((weights0 + 2.0 * correction).cwiseProduct(kernel0)).sum();
+    Eigen::VectorXd u = batch.col(k);
+
+    // The estimator's loop (dlacn2): e_j for the largest |u_j|, until the sign vector
+    // repeats, the estimate stops growing, or five iterations. The alternating vector
+    // of its final safeguard rides along with the first e_j.
+    Eigen::VectorXd alternating(size);
+    for (std::int64_t i = 0; i < size; ++i)
+        alternating[i] = (i % 2 == 0 ? 1.0 : -1.0) *
+                         (1.0 + static_cast<double>(i) / static_cast<double>(std::max<std::int64_t>(1, size - 1)));
+    double alternating_norm = -1.0;
+    std::int64_t j = largest_magnitude(u);
+    for (int iteration = 2;; ++iteration) {
+        Eigen::MatrixXd probe = Eigen::MatrixXd::Zero(size, alternating_norm < 0.0 ? 2 : 1);
+        probe(j, 0) = 1.0;
+        if (alternating_norm < 0.0) probe.col(1) = alternating;
+        system.solve(probe);
+        if (alternating_norm < 0.0) alternating_norm = probe.col(1).lpNorm<1>();
+        const Eigen::VectorXd v = probe.col(0);
+        const double previous = estimate;
+        estimate = v.lpNorm<1>();
+        const Eigen::VectorXd new_signs = signs(v);
+        if (new_signs == sign_vector || estimate <= previous) break;
+        sign_vector = new_signs;
+        Eigen::MatrixXd signed_probe = sign_vector;
+        system.solve(signed_probe);
+        u = signed_probe.col(0);
+        const std::int64_t last = j;
+        j = largest_magnitude(u);
+        if (u[last] == std::abs(u[j]) || iteration >= 5) break;
+    }
+    estimate = std::max(estimate, 2.0 * alternating_norm / (3.0 * static_cast<double>(size)));
+    rcond = 1.0 / (system.norm1() * estimate);
+    return true;
 }
 
 }  // namespace
@@ -228,6 +741,9 @@ RbfModel rbf_fit(const PointsRef& centres, const MatrixRef& values, RbfKernel ke
         scale = std::max(scale, (centres.row(i) - model.shift).norm());
     if (!(scale > 0.0) || !std::isfinite(scale))
         throw std::domain_error("the centres do not span any volume (all coincide or are not finite)");
+    // Fewer than 5 centres leave no radial freedom (P has 4 columns); the caller
+    // refuses them, and the null-space method needs n > 4.
+    if (n < 5) throw std::domain_error("at least 5 centres are needed for an RBF with an affine part");
     model.scale = scale;
     model.epsilon_normalised = model.epsilon * scale;
     const double e2 = model.epsilon_normalised * model.epsilon_normalised;
@@ -248,44 +764,26 @@ RbfModel rbf_fit(const PointsRef& centres, const MatrixRef& values, RbfKernel ke
     const double* cy = model.centre_y.data();
     const double* cz = model.centre_z.data();
 
-    // The saddle-point matrix, column-major (what Eigen's blocked LU is tuned for).
-    // It is symmetric, so column i is filled like a row.
     const std::int64_t size = n + 4;
-    Eigen::MatrixXd system(size, size);
-    parallel_for(static_cast<std::size_t>(n), 256, [&](std::size_t begin, std::size_t end) {
-        for (std::size_t ii = begin; ii < end; ++ii) {
-            const auto i = static_cast<std::int64_t>(ii);
-            double* column = system.col(i).data();
-            phi_row(kernel, e2, cx[i], cy[i], cz[i], cx, cy, cz, n, column);
-            column[i] += diagonal_shift;
-            column[n] = 1.0;
-            column[n + 1] = cx[i];
-            column[n + 2] = cy[i];
-            column[n + 3] = cz[i];
-        }
-    });
-    // Equilibrate: scale the polynomial columns and rows [1 x y z] to the size of the
-    // kernel block. Large smoothing makes that block ~lambda' I, and without this the
-    // matrix is badly scaled (rcond ~ 1 / lambda'^2) while the problem itself is not:
-    // the rcond test below would then refuse a perfectly good fit. With the scaling,
-    // the unknowns are [W; A / polynomial_scale].
-    double polynomial_scale = system.topLeftCorner(n, n).cwiseAbs().maxCoeff();
-    if (!(polynomial_scale > 0.0) || !std::isfinite(polynomial_scale)) polynomial_scale = 1.0;
-    system.bottomLeftCorner(4, n) *= polynomial_scale;
-    system.topRightCorner(n, 4) = system.bottomLeftCorner(4, n).transpose();
-    system.bottomRightCorner(4, 4).setZero();
-
     Eigen::MatrixXd rhs = Eigen::MatrixXd::Zero(size, k);
     rhs.topRows(n) = values;
 
-    // Partial pivoting rather than FullPivLU: the matrix is nonsingular whenever the
-    // centres are distinct and not coplanar (checked by the caller), so full
-    // pivoting's rank revelation buys nothing, while PartialPivLU is blocked (matrix
-    // products inside): measured 0.043 s against 0.23 s at n = 1000 and 0.28 s
-    // against 4.0 s at n = 2000 (one thread). The rcond estimate below still
-    // catches a near-singular system.
-    const Eigen::PartialPivLU<Eigen::MatrixXd> lu(system);
-    model.rcond = lu.rcond();
+    ProjectedSystem system(cx, cy, cz, n, kernel, e2, diagonal_shift);
+    const double polynomial_scale = system.polynomial_scale();
+    Eigen::MatrixXd solution;
+    double quadratic_form = 0.0;
+    const bool definite = solve_by_cholesky(system, rhs, cx, cy, cz, solution, model.rcond, quadratic_form);
+    std::optional<Eigen::MatrixXd> saddle_point;
+    std::optional<Eigen::PartialPivLU<Eigen::MatrixXd>> lu;
+    if (!definite) {
+        // Partial pivoting rather than FullPivLU: the matrix is nonsingular whenever
+        // the centres are distinct and not coplanar (checked by the caller), so full
+        // pivoting's rank revelation buys nothing, while PartialPivLU is blocked. Its
+        // rcond estimate below catches a near-singular system.
+        saddle_point = system.saddle_point_matrix(cx, cy, cz);
+        lu.emplace(*saddle_point);
+        model.rcond = lu->rcond();
+    }
     if (!(model.rcond > std::numeric_limits<double>::epsilon())) {
         throw std::domain_error(
             "the RBF system is numerically singular (reciprocal condition estimate " +
@@ -295,11 +793,13 @@ RbfModel rbf_fit(const PointsRef& centres, const MatrixRef& values, RbfKernel ke
                                   : std::string()) +
             "; smoothing > 0 regularises it");
     }
-    Eigen::MatrixXd solution = lu.solve(rhs);
-    // One step of iterative refinement (O(n^2 k), against O(n^3) for the LU): it
-    // recovers the digits lost to the residual of the factorisation, which matters
-    // when values carry a large offset (coordinates 1e4 mm from the origin).
-    solution += lu.solve(rhs - system * solution);
+    if (!definite) {
+        solution = lu->solve(rhs);
+        // One step of iterative refinement, as in the Cholesky path.
+        solution += lu->solve(rhs - *saddle_point * solution);
+        const Eigen::MatrixXd w = solution.topRows(n);
+        quadratic_form = (saddle_point->topLeftCorner(n, n) * w).cwiseProduct(w).sum();
+    }
     if (!solution.allFinite())
         throw std::domain_error("the RBF system could not be solved: the solution is not finite");
 
@@ -308,8 +808,7 @@ RbfModel rbf_fit(const PointsRef& centres, const MatrixRef& values, RbfKernel ke
     const Eigen::MatrixXd& w = model.weights_normalised;
 
     // trace(W^T K W) = trace(W'^T K' W') / g (the tps term drops out: P^T W' = 0).
-    const double energy_normalised =
-        (system.topLeftCorner(n, n) * w).cwiseProduct(w).sum() - diagonal_shift * w.squaredNorm();
+    const double energy_normalised = quadratic_form - diagonal_shift * w.squaredNorm();
     model.bending_energy = energy_normalised / g;
 
     // Back to original coordinates. f(x) = A'_0 + x' A'_xyz + sum W'_i phi'(r'_i) with
@@ -399,9 +898,8 @@ void rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool displace
                     for (std::int64_t q = 0; q < kBlock; ++q)
                         a[q] = a0 + ax * qx[q] + ay * qy[q] + az * qz[q];
                 }
-                accumulate_block(model.kernel, e2, qx, qy, qz, model.centre_x.data(),
-                                 model.centre_y.data(), model.centre_z.data(), n,
-                                 model.weights_normalised.data(), k, acc.data());
+                accumulate(model.kernel, e2, qx, qy, qz, model.centre_x.data(), model.centre_y.data(),
+                           model.centre_z.data(), n, model.weights_normalised.data(), k, acc.data());
                 for (std::int64_t q = 0; q < count; ++q)
                     for (std::int64_t c = 0; c < k; ++c) out(first + q, c) = acc[c * kBlock + q];
             }

@@ -13,7 +13,7 @@
 #include <utility>
 #include <vector>
 
-#include "tpscore/dense_cholesky.hpp"
+#include "tpscore/supernode_kernels.hpp"
 #include "tpscore/parallel.hpp"
 
 namespace tpscore {
@@ -593,7 +593,7 @@ PatternCholesky::PatternCholesky(std::int64_t n, const std::int64_t* indptr,
 }
 
 std::int64_t PatternCholesky::factor_supernode(std::int64_t s, const double* values,
-                                               const DenseCholeskyKernels& kernels) {
+                                               const SupernodeKernels& kernels) {
     const Index begin = first_column_[s];
     const Index width = first_column_[s + 1] - begin;
     const Index height = row_start_[s + 1] - row_start_[s];
@@ -645,7 +645,7 @@ void PatternCholesky::factorize(const double* values, double pivot_tolerance) {
         factorised_ = true;
         return;
     }
-    const DenseCholeskyKernels& kernels = dense_cholesky_kernels();
+    const SupernodeKernels& kernels = supernode_kernels();
     const Index supernodes = static_cast<Index>(parent_.size());
     std::vector<Index> outcome(static_cast<std::size_t>(supernodes), kNotRun);
     auto run = [&](Index s) {
@@ -696,7 +696,7 @@ void PatternCholesky::factorize(const double* values, double pivot_tolerance) {
 Eigen::MatrixXd PatternCholesky::solve(const Eigen::Ref<const Eigen::MatrixXd>& rhs) const {
     if (!factorised_) throw std::logic_error("no factor: factorize() has not succeeded");
     Eigen::MatrixXd solution(rhs.rows(), rhs.cols());
-    const DenseCholeskyKernels& kernels = dense_cholesky_kernels();
+    const SupernodeKernels& kernels = supernode_kernels();
     const Index supernodes = static_cast<Index>(parent_.size());
     Index widest_update = 0;
     for (Index s = 0; s < supernodes; ++s)

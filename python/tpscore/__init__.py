@@ -6,27 +6,39 @@ kernels in ``tpscore._core`` are private. Procedural faces are in
 """
 from __future__ import annotations
 
+from importlib import metadata as _metadata
+
 from . import datasets, render
 from .face import landmarks
-from ._core import num_threads, set_num_threads
-from .action_units import ActionUnit, ActionUnitLibrary, ControlPoint, default_library
+from ._threads import max_threads, num_threads, set_num_threads
 from .face.average_face import AverageFace, build_average_face, load_average_face
-from .expression_transfer import (
+from .expression import (
+    ActionUnit,
+    ActionUnitLibrary,
     Animation,
+    ControlPoint,
+    DenseMotion,
     ExpressionModel,
+    MirroredMotion,
+    MotionOptions,
+    RigidAlignment,
+    TextureOptions,
     TransferOptions,
     TransferResult,
+    align_rigid,
     animate,
+    default_library,
+    fit_mirror_symmetry,
     model_expression,
+    register_surfaces,
+    track_texture,
     transfer,
 )
-from .alignment import RigidAlignment, align_rigid, fit_mirror_symmetry
-from .motion import DenseMotion, MirroredMotion, MotionOptions, register_surfaces
 from .adaptation import AdaptationWarning, AdaptLevel, AdaptResult, Correspondences, adapt
 from .calibration import AxesCalibration, axes_calibration, calibrate
 from .correspondence import FeatureMesh, curvature_features
 from .csrbf import CSRBF, ConvergenceError, wendland
-from .elastic import ElasticFace, ExpressionSet
+from .elastic import ElasticFace, ElasticOptions, ExpressionSet, LinearMuscle, MuscleModel, SphincterMuscle
 from .face.io import (
     BntScan,
     read_bnt,
@@ -48,14 +60,16 @@ from .mesh import (
     vertex_normals,
     voronoi_areas,
 )
-from .muscles import LinearMuscle, MuscleModel, SphincterMuscle
 from .face.normalise import FrameTransform, NormalisedFace, normalise_face, similarity_transform, thesis_affine_transform
 from .face.grid import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, resample_scan
 from .rbf import RBF, RBF_KERNELS, TPS
 from .sparse import PatternCholesky, SparseCholesky
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
 
-__version__ = "0.1.0"
+try:
+    __version__ = _metadata.version("tpscore")
+except _metadata.PackageNotFoundError:  # imported from a source tree that was never installed
+    __version__ = "0+unknown"
 
 __all__ = [
     # kernels
@@ -67,6 +81,7 @@ __all__ = [
     "MeshSurface",
     "RayHits",
     "closest_point_on_mesh",
+    "max_threads",
     "num_threads",
     "set_num_threads",
     # scan and mesh files
@@ -106,6 +121,8 @@ __all__ = [
     "DenseMotion",
     "MirroredMotion",
     "MotionOptions",
+    "TextureOptions",
+    "track_texture",
     "ExpressionModel",
     "model_expression",
     "Animation",
@@ -144,6 +161,7 @@ __all__ = [
     "SparseCholesky",
     # elastic expression model
     "ElasticFace",
+    "ElasticOptions",
     "ExpressionSet",
     "LinearMuscle",
     "MuscleModel",

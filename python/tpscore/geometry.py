@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["mesh_edges", "vertex_adjacency", "robust_scale", "tukey_weights"]
+__all__ = ["mesh_edges", "vertex_adjacency", "robust_scale", "tukey_weights", "off_surface"]
 
 # The median absolute deviation times this is the standard deviation of a normal
 # distribution: the robust scales below are in the units of a standard deviation.
@@ -49,3 +49,11 @@ def tukey_weights(residuals, cutoff) -> np.ndarray:
     """Tukey's biweight (1 - (r / cutoff)^2)^2 of each residual, 0 beyond the cutoff."""
     u = np.abs(np.asarray(residuals, dtype=np.float64)) / cutoff
     return np.where(u < 1.0, (1.0 - u * u) ** 2, 0.0)
+
+
+def off_surface(along, distances) -> np.ndarray:
+    """Whether each closest point on a scan lies on its outline or a hole's rim rather
+    than below the query point: the offset then leaves the surface sideways, not along
+    its normal (``along``: the offset's component along the normal at the closest point;
+    ``distances``: the offsets' lengths, mm). Such pairs say nothing about the surface."""
+    return np.abs(along) < 0.8 * np.asarray(distances) - 0.05

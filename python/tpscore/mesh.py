@@ -27,6 +27,7 @@ import scipy.sparse as sp
 
 from . import _core
 from ._validation import as_faces, as_points
+from .spatial import MeshSurface
 
 __all__ = [
     "MeanCurvature",
@@ -252,7 +253,6 @@ def height_field_remesh(vertices, faces, centre, *, shape=(150, 150), crop_mm: f
     (a depth jump), get no triangle. This gives a mesh of the same surface with an
     unrelated structure, as a depth scanner would.
     """
-    from .spatial import MeshSurface
 
     vertices, faces = _mesh(vertices, faces)
     centre = np.asarray(centre, dtype=np.float64).reshape(3)

@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from PIL import Image, ImageDraw
 
 from ._validation import as_faces, as_points
 from .raster import rasterise
@@ -357,7 +358,6 @@ def heatmap_colors(values, vmax: float | None = None, cmap: str = "viridis",
 
 
 def _to_pil(image):
-    from PIL import Image
 
     array = np.asarray(image)
     if array.ndim != 3 or array.shape[2] != 3 or array.dtype != np.uint8:
@@ -368,7 +368,6 @@ def _to_pil(image):
 def draw_colorbar(image, vmin: float, vmax: float, *, cmap: str = "viridis",
                   unit: str = "mm", width: int = COLORBAR_WIDTH) -> np.ndarray:
     """Append a vertical colour bar with its value range to the right of `image`."""
-    from PIL import ImageDraw
 
     picture = np.asarray(image)
     height = picture.shape[0]
@@ -419,7 +418,6 @@ def error_heatmap(vertices, faces, errors_mm, *, vmax: float | None = None, widt
 def side_by_side(images, titles=None, *, title_height: int = 24, gap: int = 6,
                  background=DEFAULT_BACKGROUND) -> np.ndarray:
     """Place pictures left to right (top-aligned) with a title above each."""
-    from PIL import ImageDraw
 
     pictures = [np.asarray(image) for image in images]
     if not pictures:
@@ -467,7 +465,6 @@ def save_gif(path, frames, fps: float = 12.0) -> None:
     rate = float(fps)
     if not np.isfinite(rate) or rate <= 0:
         raise ValueError(f"fps must be finite and > 0, got {fps!r}")
-    from PIL import Image
 
     paletted = [p.convert("P", palette=Image.Palette.ADAPTIVE, colors=256) for p in pictures]
     paletted[0].save(path, format="GIF", save_all=True, append_images=paletted[1:],

@@ -35,17 +35,27 @@ bool intersect_line_triangle(const double* o, const double* d, const double* a, 
 /// construction, so concurrent queries from several threads are safe.
 ///
 /// The BVH splits the triangles at the median centroid along the widest axis of their
-/// centroids, down to leaves of `leaf_size` triangles; each node's box bounds its
-/// triangles, padded by a tiny margin so that rounding never hides a triangle that
-/// touches the box boundary. Every query is exact: it returns what testing all triangles
-/// would, with ties (equal distance) going to the smaller triangle index.
+/// centroids, down to leaves of `leaf_size` triangles (at most kMaxLeafSize); each
+/// node's box bounds its triangles, padded by a tiny margin so that rounding never
+/// hides a triangle that touches the box boundary. Every query is exact: it returns
+/// what testing all triangles would, with ties (equal distance) going to the smaller
+/// triangle index.
+///
+/// A closest-point query walks the tree collapsed to 8 children a node (all 8 boxes
+/// tested at once), tests a leaf's triangles together, branch-free, in SIMD lanes
+/// (the distance only; the point and its weights are computed once, for the winner),
+/// and starts from the leaf that held the previous query's answer: for queries in
+/// surface order (a grid, a mesh's vertices) the descent then has a tight bound from
+/// its first step.
 ///
 /// `workers` (every batched query): the number of threads to use; <= 0 means
 /// tpscore::num_threads(); 1 runs serially.
 class MeshSurface {
 public:
+    static constexpr int kMaxLeafSize = 8;
+
     /// Preconditions: vertices (nv, 3) finite; faces (nf, 3) with indices in [0, nv).
-    MeshSurface(const PointsRef& vertices, const FacesRef& faces, int leaf_size = 4);
+    MeshSurface(const PointsRef& vertices, const FacesRef& faces, int leaf_size = 8);
 
     std::int64_t num_triangles() const { return static_cast<std::int64_t>(triangle_index_.size()); }
 
@@ -75,11 +85,32 @@ public:
         std::int32_t right;
     };
 
+    /// The closest-point query's tree: the binary tree collapsed to up to kWide children
+    /// per node, boxes stored one array per coordinate so that all children are tested
+    /// at once in SIMD lanes. A child >= 0 is a WideNode; < 0 is the leaf Node -child - 1.
+    static constexpr int kWide = 8;
+    struct WideNode {
+        double lo[3][kWide];  ///< unused slots hold an empty box (+inf, -inf)
+        double hi[3][kWide];
+        std::int32_t child[kWide];
+        std::int32_t count;
+    };
+
 private:
     std::int32_t build(std::int32_t begin, std::int32_t end, const std::vector<double>& centroids);
+    std::int32_t build_wide(std::int32_t node);
 
     // Corners of each triangle in leaf order: 9 doubles (a, b, c) per triangle.
     std::vector<double> corners_;
+    // The same triangles for the SIMD distance test: one block per leaf, holding each
+    // quantity (closest_point.cpp, kTriangleFields) for kMaxLeafSize lanes, so that a
+    // leaf's data is contiguous (a few cache lines, fetched together).
+    std::vector<double> blocks_;
+    // For each BVH node that is a leaf, its block; for each leaf-order triangle, the
+    // BVH node of its leaf.
+    std::vector<std::int32_t> block_of_;
+    std::vector<std::int32_t> leaf_of_;
+    std::vector<WideNode> wide_;
     std::vector<std::int64_t> triangle_index_;  // original index of each leaf-order triangle
     std::vector<Node> nodes_;
     double pad_ = 0.0;

@@ -1,63 +1,40 @@
-// Dense kernels of the supernodal Cholesky factorisation (tpscore/sparse_solve.hpp):
-// the partial factorisation of one supernode's front and the supernode's share of the
-// triangular solves.
+// Dense Cholesky factorisation A = L L^T of symmetric positive definite matrices,
+// and solves with the factor: the linear algebra under the dense RBF fit.
 //
-// Almost all the arithmetic of a sparse Cholesky factorisation happens in these dense
-// blocks, so they are compiled twice: once for the baseline instruction set the
-// library is built for, and, on x86-64, once more for x86-64-v3 (AVX2 + FMA), which
-// doubles the width of every multiply-add. dense_cholesky_kernels() picks the best set
-// the CPU runs, so a wheel built for baseline x86-64 still uses AVX2 where it exists.
-//
-// This header includes no Eigen on purpose: the x86-64-v3 build of the kernels
-// renames Eigen's namespace (see dense_cholesky.cpp), and only plain pointers may
-// cross between the two builds.
+// Blocked (right-looking, panels of 128 columns), threaded over the trailing update
+// and the panel solve, with register-tiled SIMD micro-kernels compiled for AVX-512,
+// AVX2 + FMA and baseline x86-64 and chosen once at load time (one binary for every
+// CPU: no -march=native; see simd.hpp). Each output tile is computed by one thread with a fixed
+// order of operations, so the factor does not depend on the thread count.
 #pragma once
 
-#include <cstddef>
+#include <cstdint>
 
 namespace tpscore {
 
-/// One instruction set's build of the dense supernode kernels.
+/// Factorises the n x n symmetric positive definite matrix whose lower triangle
+/// (diagonal included) is stored column-major at `a` with leading dimension `lda`,
+/// overwriting that lower triangle with L. The strict upper triangle is neither
+/// read nor written, so a caller may keep the original matrix there.
 ///
-/// A supernode's panel is the column-major (rows, columns) block of L below and on
-/// the diagonal of its `columns` consecutive columns (leading dimension `rows`): the
-/// top (columns, columns) square is the diagonal block L11 (lower triangle; the
-/// strict upper triangle is left as it was), the rest is L21.
-struct DenseCholeskyKernels {
-    /// Name of the instruction set ("x86-64-v3" or "baseline").
-    const char* isa;
+/// Returns -1 on success, or the first column j whose pivot is not positive and
+/// finite: the matrix is then not (numerically) positive definite, and the lower
+/// triangle holds a partial factorisation.
+std::int64_t cholesky_factor(std::int64_t n, double* a, std::int64_t lda);
 
-    /// Factorises a supernode's front in place: on entry the panel holds the
-    /// assembled columns of the matrix (A11; A21) and `update` the assembled
-    /// (rows - columns) square lower triangle of the front's remaining block, column-
-    /// major. On exit the panel holds (L11; L21) with A11 = L11 L11^T and
-    /// L21 = A21 L11^-T, and update -= L21 L21^T (lower triangle only).
-    /// pivots[j] receives the j-th pivot, the square of L11's j-th diagonal entry (the
-    /// j-th entry of D in the equivalent L D L^T). Returns -1, or the index j of the
-    /// first pivot that is not positive (then pivots[0..j] are set, nothing after j is
-    /// meaningful and `update` is untouched).
-    std::ptrdiff_t (*factor_front)(double* panel, std::ptrdiff_t rows, std::ptrdiff_t columns,
-                                   double* update, double* pivots);
+/// Solves L Y = B (`transpose` false) or L^T Y = B (`transpose` true) in place, with
+/// L the lower triangle at `l` (n x n, leading dimension ldl) and B n x k column-major
+/// at `b` (leading dimension ldb). Serial; the caller passes all right-hand sides at
+/// once, which reads L once for all of them.
+void triangular_solve(std::int64_t n, const double* l, std::int64_t ldl, bool transpose, double* b,
+                      std::int64_t ldb, std::int64_t k);
 
-    /// The supernode's step of the forward solve L y = b for one right-hand side:
-    /// x (columns) := L11^-1 x, then below (rows - columns) := L21 x.
-    void (*forward)(const double* panel, std::ptrdiff_t rows, std::ptrdiff_t columns, double* x,
-                    double* below);
+/// Y = A X for the symmetric n x n matrix A given by its strict upper triangle
+/// (column-major at `a`, leading dimension lda) and its `diagonal` (n values); X and
+/// Y are n x k column-major (ldx, ldy). Serial. With cholesky_factor this lets a
+/// caller keep A in the upper triangle and compute residuals after factorising.
+void symmetric_multiply(std::int64_t n, const double* a, std::int64_t lda, const double* diagonal,
+                        const double* x, std::int64_t ldx, double* y, std::int64_t ldy, std::int64_t k);
 
-    /// The supernode's step of the backward solve L^T x = y for one right-hand side:
-    /// x (columns) := L11^-T (x - L21^T below), with `below` the (rows - columns)
-    /// solution entries at the panel's lower rows.
-    void (*backward)(const double* panel, std::ptrdiff_t rows, std::ptrdiff_t columns, double* x,
-                     const double* below);
-};
-
-/// The kernels for this CPU: the x86-64-v3 build when the CPU supports it and the
-/// library has one, else the baseline build. The environment variable
-/// TPSCORE_DENSE_ISA=baseline, read once, forces the baseline build (for comparing
-/// the two).
-const DenseCholeskyKernels& dense_cholesky_kernels();
-
-/// The baseline build, always present.
-const DenseCholeskyKernels& dense_cholesky_kernels_baseline();
 
 }  // namespace tpscore

@@ -3,26 +3,40 @@
 
 #include <algorithm>
 #include <cstddef>
-#include <exception>
-#include <thread>
-#include <vector>
+#include <type_traits>
 
 namespace tpscore {
 
+/// The most threads a kernel uses: 4x the hardware concurrency. More would only
+/// share the cores, and every thread costs a stack; a request above it (from
+/// set_num_threads or TPSCORE_NUM_THREADS) is capped here.
+int max_threads();
+
 /// Number of threads a kernel may use: set_num_threads() if called with n > 0,
-/// else the environment variable TPSCORE_NUM_THREADS, else the hardware concurrency.
+/// else the environment variable TPSCORE_NUM_THREADS, else the hardware concurrency;
+/// never more than max_threads().
 int num_threads();
 
-/// Sets the thread count for later kernel calls; n <= 0 restores the default.
+/// Sets the thread count for later kernel calls; n <= 0 restores the default, and
+/// n > max_threads() means max_threads().
 void set_num_threads(int n);
+
+namespace detail {
+/// Runs task(context, i) for every i in [0, count) exactly once, on the calling
+/// thread and on up to `helpers` threads of a process-wide pool; returns when all
+/// have run, rethrowing the first exception a task threw. See parallel.cpp.
+void run_tasks(std::size_t count, std::size_t helpers, void (*task)(void*, std::size_t), void* context);
+}  // namespace detail
 
 /// Calls body(begin, end) on disjoint chunks that cover [0, n).
 ///
 /// Each chunk holds at least `min_chunk` items, so small problems run serially on
-/// the calling thread (spawning threads costs tens of microseconds). Every index is
-/// visited by exactly one chunk, so a body that writes only its own rows gives the
-/// same result whatever the thread count. The first exception thrown by a worker is
-/// rethrown on the calling thread after all workers have joined.
+/// the calling thread. Every index is visited by exactly one chunk, so a body that
+/// writes only its own rows gives the same result whatever the thread count (and
+/// whichever thread runs which chunk). The calling thread works too, and takes any chunk no other thread
+/// has started: a pool thread that cannot start, or that another process keeps off
+/// a core, slows nothing down beyond its share. The first exception thrown by a body
+/// is rethrown on the calling thread after every chunk has finished.
 template <class Body>
 void parallel_for(std::size_t n, std::size_t min_chunk, Body&& body) {
     if (n == 0) return;
@@ -33,25 +47,22 @@ void parallel_for(std::size_t n, std::size_t min_chunk, Body&& body) {
         body(std::size_t{0}, n);
         return;
     }
-    const std::size_t chunk = (n + workers - 1) / workers;
-    std::vector<std::exception_ptr> errors(workers);
-    std::vector<std::thread> threads;
-    threads.reserve(workers - 1);
-    auto run = [&](std::size_t w) {
-        const std::size_t begin = w * chunk;
-        const std::size_t end = std::min(n, begin + chunk);
-        if (begin >= end) return;
-        try {
-            body(begin, end);
-        } catch (...) {
-            errors[w] = std::current_exception();
-        }
-    };
-    for (std::size_t w = 1; w < workers; ++w) threads.emplace_back(run, w);
-    run(0);  // the calling thread takes the first chunk
-    for (auto& t : threads) t.join();
-    for (auto& e : errors)
-        if (e) std::rethrow_exception(e);
+    // Up to four chunks per thread, taken in turn from a shared counter: a thread that
+    // another process keeps off its core then holds up a quarter of its share, not all.
+    const std::size_t tasks = std::min(4 * workers, std::max<std::size_t>(1, n / min_chunk));
+    using Callable = std::remove_reference_t<Body>;
+    struct Chunks {
+        Callable* body;
+        std::size_t n, chunk;
+    } chunks{&body, n, (n + tasks - 1) / tasks};
+    detail::run_tasks((n + chunks.chunk - 1) / chunks.chunk, workers - 1,
+                      [](void* context, std::size_t w) {
+                          const Chunks& c = *static_cast<const Chunks*>(context);
+                          const std::size_t begin = w * c.chunk;
+                          const std::size_t end = std::min(c.n, begin + c.chunk);
+                          if (begin < end) (*c.body)(begin, end);
+                      },
+                      &chunks);
 }
 
 }  // namespace tpscore

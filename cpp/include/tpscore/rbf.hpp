@@ -65,9 +65,9 @@ struct RbfModel {
     /// to the bending energy the spline minimises; for biharmonic and multiquadric
     /// it is <= 0 (their kernels are conditionally negative definite).
     double bending_energy = 0.0;
-    /// Eigen's PartialPivLU::rcond(): an estimate of the reciprocal of the 1-norm
-    /// condition number of the saddle-point matrix that was factorised (normalised
-    /// coordinates, polynomial rows and columns scaled to the kernel block).
+    /// An estimate of the reciprocal of the 1-norm condition number of the saddle-point
+    /// matrix that was solved (normalised coordinates, polynomial rows and columns
+    /// scaled to the kernel block): Hager and Higham's estimator of ||S^{-1}||_1.
     double rcond = 0.0;
 
     // --- the normalised form that evaluation uses --------------------------------
@@ -91,6 +91,9 @@ struct RbfModel {
 };
 
 /// Fits f with f(p_i) = values_i (exactly when smoothing == 0).
+///
+/// Solves by the null-space method with a Cholesky factorisation (see rbf.cpp);
+/// threaded, and the result does not depend on the thread count.
 ///
 /// centres (n, 3) finite, values (n, k) finite, k >= 1. epsilon > 0 for gaussian and
 /// multiquadric (ignored otherwise), smoothing >= 0. The caller checks the geometry

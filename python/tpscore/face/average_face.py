@@ -20,7 +20,8 @@ import numpy as np
 
 from .landmarks import LANDMARK_NAMES, N_LANDMARKS, landmark_index, landmark_map
 from .normalise import FrameTransform, NormalisedFace, similarity_transform
-from .grid import FaceGrid
+from ..datasets import embedded_faces
+from .grid import FaceGrid, resample_scan
 from ..spatial import MeshSurface
 
 __all__ = ["AverageFace", "build_average_face", "load_average_face", "consensus_landmarks", "afm_faces",
@@ -197,7 +198,4 @@ def load_average_face() -> AverageFace:
 def afm_faces(shape=(150, 150)) -> list[FaceGrid]:
     """The embedded procedural faces (tpscore.datasets) resampled as face grids: the
     database the shipped AFM is built from."""
-    from ..datasets import embedded_faces
-    from .grid import resample_scan
-
     return [resample_scan(scan.points, scan.landmarks, shape) for scan in embedded_faces()]

@@ -29,12 +29,13 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
+from scipy.spatial import Delaunay, QhullError
 
 from .._validation import as_positive
 from .image import as_colour_image as _as_colour_image
 from .image import check_image_fits, sample_image
-from .io import BntScan, _as_landmark_array, read_bnt, read_image, read_landmarks, read_mesh
-from .landmarks import LANDMARK_NAMES, N_LANDMARKS, empty_landmarks
+from .io import BntScan, read_bnt, read_image, read_landmarks, read_mesh
+from .landmarks import LANDMARK_NAMES, N_LANDMARKS, as_landmarks, empty_landmarks
 
 __all__ = [
     "FaceGrid",
@@ -139,7 +140,7 @@ class FaceGrid:
         uv = np.array(self.uv, dtype=np.float64)
         if uv.shape != (height, width, 2) or not np.isfinite(uv).all():
             raise ValueError(f"uv must be a finite ({height}, {width}, 2) array, got shape {uv.shape}")
-        landmarks = _as_landmark_array(self.landmarks)
+        landmarks = as_landmarks(self.landmarks)
         index = np.array(self.landmark_vertices)
         if index.shape != (N_LANDMARKS,) or not np.issubdtype(index.dtype, np.integer):
             raise ValueError(f"landmark_vertices must be ({N_LANDMARKS},) integers, got {index.shape} {index.dtype}")
@@ -346,7 +347,7 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
     height, width = _as_shape(shape)
     max_gap_mm = as_positive(max_gap_mm, "max_gap_mm", allow_zero=True)
     grid, valid, source_uv, cloud, cloud_uv = _split_input(scan_or_points, uv)
-    landmarks = empty_landmarks() if landmarks is None else _as_landmark_array(landmarks)
+    landmarks = empty_landmarks() if landmarks is None else as_landmarks(landmarks)
 
     lattice = None
     if grid is not None:
@@ -720,7 +721,6 @@ def _resample_lattice(grid, valid, source_uv, lattice, xs, ys, max_gap_mm):
 
 def _resample_delaunay(cloud, cloud_uv, xs, ys, max_gap_mm):
     """z, mask and u,v on the target axes from scattered points (see resample_scan)."""
-    from scipy.spatial import Delaunay, QhullError
 
     xy = np.ascontiguousarray(cloud[:, :2])
     try:
@@ -762,7 +762,7 @@ def _resample_delaunay(cloud, cloud_uv, xs, ys, max_gap_mm):
 
 def _snap_landmarks(vertices: np.ndarray, mask: np.ndarray, landmarks):
     """Snap each finite landmark to the nearest valid vertex: (snapped (22, 3), index (22,))."""
-    landmarks = _as_landmark_array(landmarks)
+    landmarks = as_landmarks(landmarks)
     snapped = empty_landmarks()
     index = np.full(N_LANDMARKS, -1, dtype=np.int64)
     present = np.flatnonzero(np.isfinite(landmarks).all(axis=1))

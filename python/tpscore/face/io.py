@@ -27,8 +27,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
-from .landmarks import LANDMARK_NAMES, N_LANDMARKS, empty_landmarks, landmark_index
+from .._validation import as_faces, as_points
+from .landmarks import LANDMARK_NAMES, N_LANDMARKS, as_landmarks, empty_landmarks, landmark_index
 
 __all__ = [
     "BntScan",
@@ -103,25 +105,6 @@ def _read_text(path) -> list[str]:
     return text.splitlines()
 
 
-def _as_landmark_array(landmarks, name: str = "landmarks") -> np.ndarray:
-    """A (22, 3) float64 copy; rows are either all finite or all NaN (missing)."""
-    try:
-        array = np.array(landmarks, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be a numeric (22, 3) array: {exc}") from None
-    if array.shape != (N_LANDMARKS, 3):
-        raise ValueError(f"{name} must have shape ({N_LANDMARKS}, 3), got {array.shape}")
-    finite = np.isfinite(array)
-    partial = finite.any(axis=1) & ~finite.all(axis=1)
-    if np.isinf(array).any() or partial.any():
-        bad = np.flatnonzero(partial | np.isinf(array).any(axis=1))[0]
-        raise ValueError(
-            f"{name} row {bad} ({LANDMARK_NAMES[bad]}) has non-finite coordinates "
-            f"{array[bad].tolist()}; a missing landmark is a row of three NaN"
-        )
-    return array
-
-
 def _format_float(value: float) -> str:
     # repr gives the shortest text that reads back to the same float.
     return repr(float(value))
@@ -140,7 +123,6 @@ def read_image(path) -> np.ndarray:
         Naming the file: missing, a folder, not an image, truncated or corrupt, or
         larger than :data:`MAX_IMAGE_PIXELS`.
     """
-    from PIL import Image, UnidentifiedImageError
 
     where = repr(str(path))
     if not os.path.exists(path):
@@ -453,7 +435,7 @@ def write_lm3(path, landmarks, *, header: str = "3D landmark points") -> None:
     header : str
         The first line of the file.
     """
-    array = _as_landmark_array(landmarks)
+    array = as_landmarks(landmarks)
     if "\n" in header or "\r" in header:
         raise ValueError("header must be a single line")
     present = np.flatnonzero(np.isfinite(array).all(axis=1))
@@ -605,7 +587,7 @@ def write_landmarks(path, landmarks) -> None:
     """Write 22 landmarks as ``.lm3``, ``.csv`` (``name,x,y,z`` with a header) or ``.json``
     (``{name: [x, y, z]}``), chosen by the suffix. Missing (NaN) landmarks are omitted."""
     suffix = Path(path).suffix.lower()
-    array = _as_landmark_array(landmarks)
+    array = as_landmarks(landmarks)
     present = np.flatnonzero(np.isfinite(array).all(axis=1))
     if suffix == ".lm3":
         write_lm3(path, array)
@@ -638,6 +620,7 @@ def read_mesh(path):
     ValueError
         If the file is missing, unreadable, or holds no vertices.
     """
+    # trimesh takes a third of a second to import; only mesh files need it
     import trimesh
 
     where = repr(str(path))
@@ -739,7 +722,6 @@ def write_mesh(path, vertices, faces, *, uv=None, vertex_colors=None) -> None:
     vertex_colors : (n, 3) or (n, 4), optional
         uint8 in [0, 255] or float in [0, 1]: OBJ ``v x y z r g b``, PLY red/green/blue/alpha.
     """
-    from .._validation import as_faces, as_points
 
     vertices = as_points(vertices, "vertices")
     faces = as_faces(np.asarray(faces).reshape(-1, 3) if np.size(faces) == 0 else faces, len(vertices))
@@ -808,8 +790,7 @@ def _ply_bytes(vertices, faces, uv, colors) -> bytes:
 
 def write_npz(path, **arrays) -> None:
     """Write arrays to a compressed ``.npz`` (atomically, like every writer here)."""
-    import io as _bytes_io
 
-    buffer = _bytes_io.BytesIO()
+    buffer = _stdio.BytesIO()
     np.savez_compressed(buffer, **arrays)
     _atomic_write(path, buffer.getvalue())

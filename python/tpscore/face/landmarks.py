@@ -10,10 +10,13 @@ from typing import Mapping
 
 import numpy as np
 
+from ..rbf import TPS
+
 __all__ = [
     "LANDMARK_NAMES",
     "N_LANDMARKS",
     "landmark_index",
+    "as_landmarks",
     "MIRROR_LANDMARK",
     "empty_landmarks",
     "landmark_map",
@@ -65,6 +68,25 @@ def landmark_index(name: str) -> int:
         raise ValueError(
             f"unknown landmark name {name!r}; known names: {', '.join(LANDMARK_NAMES)}"
         ) from None
+
+
+def as_landmarks(landmarks, name: str = "landmarks") -> np.ndarray:
+    """A (22, 3) float64 copy; rows are either all finite or all NaN (missing)."""
+    try:
+        array = np.array(landmarks, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be a numeric (22, 3) array: {exc}") from None
+    if array.shape != (N_LANDMARKS, 3):
+        raise ValueError(f"{name} must have shape ({N_LANDMARKS}, 3), got {array.shape}")
+    finite = np.isfinite(array)
+    partial = finite.any(axis=1) & ~finite.all(axis=1)
+    if np.isinf(array).any() or partial.any():
+        bad = np.flatnonzero(partial | np.isinf(array).any(axis=1))[0]
+        raise ValueError(
+            f"{name} row {bad} ({LANDMARK_NAMES[bad]}) has non-finite coordinates "
+            f"{array[bad].tolist()}; a missing landmark is a row of three NaN"
+        )
+    return array
 
 
 def _mirror(name: str) -> str:
@@ -189,7 +211,6 @@ def landmark_map(from_landmarks, to_landmarks, *, smoothing: float = 0.0,
     Raises a ValueError that says how many landmarks remain when fewer than five are
     present in both faces (a 3D TPS needs five non-coplanar pairs).
     """
-    from ..rbf import TPS  # the kernels import this module; import them late
 
     a = np.asarray(from_landmarks, dtype=np.float64)
     b = np.asarray(to_landmarks, dtype=np.float64)

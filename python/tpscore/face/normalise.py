@@ -12,6 +12,10 @@ Two ways to bring a face into the reference frame:
 
 Every result keeps its 4 x 4 matrix so that outputs can be mapped back into the
 scan's own frame.
+
+A face's own frame (:func:`face_frame`: origin at the nose tip, axes from the eyes and
+the chin-to-brow line, the facial unit) needs no reference face; it is the one frame
+from landmarks that every method places things in.
 """
 from __future__ import annotations
 
@@ -23,9 +27,11 @@ import numpy as np
 from .._validation import as_points
 from ..spatial import KDTree, MeshSurface
 from .grid import FaceGrid
-from .landmarks import N_LANDMARKS, landmark_index
+from .landmarks import N_LANDMARKS, anchor_point, as_landmarks, landmark_index
 
 __all__ = [
+    "FaceFrame",
+    "face_frame",
     "FrameTransform",
     "similarity_transform",
     "thesis_affine_transform",
@@ -91,6 +97,61 @@ class FrameTransform:
     def then(self, other: "FrameTransform") -> "FrameTransform":
         """The transform that applies ``self`` first, then ``other``."""
         return FrameTransform(other.matrix @ self.matrix, f"{self.method}+{other.method}")
+
+
+@dataclass(frozen=True)
+class FaceFrame:
+    """A face's own frame, from its landmarks.
+
+    ``origin`` is the nose tip; the rows of ``axes`` are the unit x (toward the subject's
+    left, through the eye corners), y (up, from the chin toward the brows, made
+    orthogonal to x) and z = x cross y (out of the face). ``facial_unit`` is the
+    distance between the inner eye corners (mm), ``forehead`` the midpoint of the inner
+    eyebrows.
+    """
+
+    origin: np.ndarray
+    axes: np.ndarray
+    facial_unit: float
+    forehead: np.ndarray
+
+    def to_frame(self, points) -> np.ndarray:
+        """World points (m, 3) -> frame coordinates (m, 3)."""
+        return (np.asarray(points, dtype=np.float64) - self.origin) @ self.axes.T
+
+    def to_world(self, coordinates) -> np.ndarray:
+        """Frame coordinates (m, 3) -> world points (m, 3)."""
+        return np.asarray(coordinates, dtype=np.float64) @ self.axes + self.origin
+
+
+def face_frame(landmarks) -> FaceFrame:
+    """The frame of a face with the given (22, 3) landmarks (see :class:`FaceFrame`).
+
+    Needs the nose tip, the four eye corners, the inner eyebrows and the chin middle;
+    raises ValueError naming the first one that is missing.
+    """
+    lm = as_landmarks(landmarks)
+
+    def mean_of(*names: str) -> np.ndarray:
+        return anchor_point(lm, dict.fromkeys(names, 1.0), "the face frame")
+
+    tip = mean_of("Nose tip")
+    left_eye = mean_of("Outer left eye corner", "Inner left eye corner")
+    right_eye = mean_of("Outer right eye corner", "Inner right eye corner")
+    forehead = mean_of("Inner left eyebrow", "Inner right eyebrow")
+    chin = mean_of("Chin middle")
+    x = left_eye - right_eye
+    up = forehead - chin
+    if np.linalg.norm(x) == 0 or np.linalg.norm(np.cross(x, up)) <= 1e-9 * np.linalg.norm(x) * np.linalg.norm(up):
+        raise ValueError("landmarks: the eyes and the chin-to-brow line are degenerate; no face frame")
+    x = x / np.linalg.norm(x)
+    y = up - (up @ x) * x
+    y = y / np.linalg.norm(y)
+    z = np.cross(x, y)
+    unit = float(np.linalg.norm(mean_of("Inner left eye corner") - mean_of("Inner right eye corner")))
+    if unit <= 0:
+        raise ValueError("landmarks: the inner eye corners coincide; the facial unit is 0")
+    return FaceFrame(origin=tip, axes=np.stack([x, y, z]), facial_unit=unit, forehead=forehead)
 
 
 def _paired(landmarks, reference, name):

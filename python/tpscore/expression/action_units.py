@@ -22,7 +22,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .face.landmarks import AnchoredPoint
+from ..face.landmarks import AnchoredPoint
 
 __all__ = [
     "ControlPoint",

@@ -19,8 +19,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .adaptation_cli import add_adapt_parser, adapt_command
-from .elastic_cli import add_elastic_parser, elastic_command
+from .. import render
+from ..expression import TransferOptions, align_rigid, transfer
+from ..face import io
+from ..face.average_face import afm_faces, build_average_face
+from ..face.grid import load_scan
+from ..spatial import MeshSurface
+from .adapt import add_adapt_parser, adapt_command
+from .demo import run_demo
+from .elastic import add_elastic_parser, elastic_command
 
 __all__ = ["main"]
 
@@ -48,8 +55,8 @@ def _add_transfer(sub) -> None:
     p.add_argument("--au", required=True,
                    help="AU code(s): 12, 12L, 12R, '1,4,15', 'AU12:0.5', or an emotion (sadness, ...)")
     p.add_argument("--magnitude", type=float, default=1.0, help="m in [0, 1] (default 1)")
-    p.add_argument("--method", choices=["default", "thesis"], default="default",
-                   help="pipeline variant: default (best measured) or thesis (as published)")
+    p.add_argument("--method", choices=["default", "published"], default="default",
+                   help="default (best measured) or published (the method as published)")
     p.add_argument("--grid", default="150x150", help="grid size HxW (default 150x150)")
     p.add_argument("--out", metavar="NPZ", help="write vertices/neutral/mask (target scan frame) and more")
     p.add_argument("--mesh", metavar="OBJ|PLY", help="write the animated target as a mesh with u,v")
@@ -73,10 +80,6 @@ def _grid_shape(text: str) -> tuple[int, int]:
 
 
 def run_transfer(args) -> int:
-    from . import render
-    from .face import io
-    from .face.grid import load_scan
-    from .expression_transfer import TransferOptions, transfer
 
     progress = _Progress(args.quiet)
     shape = _grid_shape(args.grid)
@@ -85,7 +88,7 @@ def run_transfer(args) -> int:
                      (args.source_expr, args.source_expr_landmarks), (args.target, args.target_landmarks)):
         grids.append(load_scan(path, lm, shape=shape))
         progress.step(f"read and resampled {path}")
-    options = TransferOptions.thesis() if args.method == "thesis" else TransferOptions()
+    options = TransferOptions.published() if args.method == "published" else TransferOptions()
     result = transfer(*grids, args.au, args.magnitude, options=options)
     progress.step(f"transferred {'+'.join(result.animation.labels)} at magnitude {args.magnitude:g}")
     if args.out:
@@ -130,8 +133,6 @@ def _distance_to_truth(result, truth, target) -> tuple[np.ndarray, np.ndarray]:
     vertices, to the true expressive surface, after aligning the truth rigidly onto the
     target's neutral scan (landmarks, then robust ICP, which the still part of the face
     decides); NaN where the grid is invalid."""
-    from .alignment import align_rigid
-    from .spatial import MeshSurface
 
     align = align_rigid(truth, target).transform
     mesh = truth.mesh()
@@ -144,8 +145,6 @@ def _distance_to_truth(result, truth, target) -> tuple[np.ndarray, np.ndarray]:
 
 
 def run_build_afm(args) -> int:
-    from .face.average_face import build_average_face
-    from .face.average_face import afm_faces
 
     progress = _Progress(args.quiet)
     faces = afm_faces()
@@ -157,10 +156,8 @@ def run_build_afm(args) -> int:
     return 0
 
 
-def run_demo(args) -> int:
-    from .demo import run_demo as demo
-
-    demo(args.out, quiet=args.quiet)
+def run_demo_command(args) -> int:
+    run_demo(args.out, quiet=args.quiet)
     return 0
 
 
@@ -184,7 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    handlers = {"transfer": run_transfer, "demo": run_demo, "build-afm": run_build_afm,
+    handlers = {"transfer": run_transfer, "demo": run_demo_command, "build-afm": run_build_afm,
                 "elastic": elastic_command, "adapt": adapt_command}
     with warnings.catch_warnings():
         warnings.simplefilter("default")
@@ -198,6 +195,3 @@ def main(argv=None) -> int:
             print(f"tpscore: error: {exc}", file=sys.stderr)
             return 2
 
-
-if __name__ == "__main__":
-    sys.exit(main())

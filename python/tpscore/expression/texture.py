@@ -36,11 +36,12 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+import cv2
 
-from ._validation import as_positive
-from .face.image import bilinear, grey_levels
-from .face.grid import FaceGrid
-from .raster import interpolate_pixels, rasterise
+from .._validation import as_positive
+from ..face.image import bilinear, grey_levels
+from ..face.grid import FaceGrid
+from ..raster import interpolate_pixels, rasterise
 
 __all__ = ["TextureOptions", "TextureMatches", "TextureWarning", "track_texture", "render_texture",
            "TexturePlane"]
@@ -122,7 +123,6 @@ class TextureView:
 
 def render_texture(grid: FaceGrid, plane: TexturePlane) -> TextureView:
     """Render a face grid's colour image into an image plane through its triangles."""
-    import cv2
 
     if grid.image is None:
         raise ValueError("the face grid has no colour image")
@@ -200,7 +200,6 @@ def _image_pixel_mm(grid: FaceGrid) -> float:
 def _detail_rms(view: TextureView, sigma_px: float) -> float:
     """RMS of the grey levels minus their local mean over the surface: the strength of
     the image's pattern in grey levels (0 for a flat image)."""
-    import cv2
 
     valid = view.valid.astype(np.float32)
     grey = np.where(view.valid, view.grey, 0.0).astype(np.float32)
@@ -212,7 +211,6 @@ def _detail_rms(view: TextureView, sigma_px: float) -> float:
 def _pattern(view: TextureView, sigma_px: float) -> np.ndarray:
     """The skin's pattern: grey levels minus their local mean over the surface, over
     their local rms contrast (shading, exposure and white balance drop out)."""
-    import cv2
 
     valid = view.valid.astype(np.float32)
     grey = np.where(view.valid, view.grey, 0.0).astype(np.float32)
@@ -248,7 +246,6 @@ _STRENGTH_HALF = 0.005
 def _texture_strength(pattern: np.ndarray, sigma_px: float) -> np.ndarray:
     """Smaller eigenvalue of the pattern's structure tensor over a Gaussian window: how
     firmly the texture pins a patch down in its weakest direction."""
-    import cv2
 
     gx = cv2.Sobel(pattern, cv2.CV_32F, 1, 0, ksize=3) / 8.0
     gy = cv2.Sobel(pattern, cv2.CV_32F, 0, 1, ksize=3) / 8.0
@@ -259,7 +256,6 @@ def _texture_strength(pattern: np.ndarray, sigma_px: float) -> np.ndarray:
 
 
 def _inside(valid: np.ndarray, rim_px: int) -> np.ndarray:
-    import cv2
 
     if rim_px == 0:
         return valid
@@ -302,7 +298,6 @@ class _Tracker:
 
     def match(self, displacement=None) -> TextureMatches | None:
         """Flow both ways and lift the consistent matches; None when too few are."""
-        import cv2
 
         start = time.perf_counter()
         expressive, inside = self.expressive_pattern, self.expressive_inside

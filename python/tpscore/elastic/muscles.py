@@ -1,4 +1,5 @@
-"""Muscles that drive the control points of an :class:`~tpscore.elastic.ElasticFace`.
+"""Muscles that drive the control points of an :class:`~tpscore.elastic.ElasticFace`,
+so that an animator can pose a face by contractions instead of point displacements.
 
 A **linear muscle** runs from a bony attachment B (fixed to the skull) to a skin
 attachment S. Contracting it by a fraction c of its length pulls a control point p
@@ -16,7 +17,7 @@ A **sphincter muscle** (around the mouth or an eye) is an ellipse of radial line
 muscles: the centre is fitted to its control points (their mean, moved ``depth_mm``
 behind the surface), the ellipse's semi-axes are the points' extents along the face
 frame's x and y, and ``spokes`` linear muscles run from the centre to points on the
-ellipse, each with an angular zone of one spoke spacing.
+ellipse, each with an angular zone that reaches its neighbours.
 
 Muscles are registered to the control points once (:class:`MuscleModel`): every
 muscle's displacement field per unit contraction is precomputed, so the control-point
@@ -26,18 +27,16 @@ has 22 muscles and contraction presets for the six basic emotions.
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
-from importlib import resources
-from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
 
-from ._validation import as_positive, check_finite
-from .elastic import ElasticFace
-from .face.landmarks import landmark_index
-from .spatial import MeshSurface
+from .._validation import as_positive, check_finite
+from ..face.landmarks import validate_anchor
+from ..spatial import MeshSurface
+from .control_points import REFERENCE_FACIAL_UNIT_MM, anchored_in_frame, cast_onto_front, read_data_file
+from .model import ElasticFace
 
 __all__ = [
     "LinearMuscle",
@@ -207,28 +206,15 @@ class SphincterMuscle:
         return sum(m.unit_displacement(points) for m in self.radial_muscles())
 
 
-def _read_muscle_file(path=None) -> dict:
-    try:
-        if path is None:
-            text = resources.files("tpscore").joinpath("data/elastic_muscles.json").read_text(encoding="utf-8")
-        else:
-            text = Path(path).read_text(encoding="utf-8")
-        data = json.loads(text)
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{path}: cannot read a muscle set: {exc}") from None
-    if not isinstance(data, Mapping) or "muscles" not in data:
-        raise ValueError(f"{path or 'default muscles'}: expected an object with a 'muscles' list")
-    return data
-
-
-def _surface_point(surface: MeshSurface, frame, xy: np.ndarray, fallback_z: float) -> np.ndarray:
-    """The front-most surface point at frame (x, y); the anchor itself over a hole."""
-    height = float(frame.to_frame(surface.vertices)[:, 2].max()) + 10.0 * frame.facial_unit
-    origin = frame.to_world(np.array([[xy[0], xy[1], height]]))
-    hits = surface.intersect_rays(origin, -frame.axes[2][None])
-    if hits.hit[0]:
-        return hits.points[0]
-    return frame.to_world(np.array([[xy[0], xy[1], fallback_z]]))[0]
+def _bone_attachment(entry: Mapping, muscle: str, face: ElasticFace, surface: MeshSurface, scale: float) -> np.ndarray:
+    """A linear muscle's bony attachment: its anchored place on the surface (or at the
+    anchor's depth over a hole), moved ``depth_mm`` into the head."""
+    frame = face.frame
+    at, offset = validate_anchor(f"muscle {muscle!r} bone", entry["at"], entry.get("offset_mm", (0.0, 0.0)))
+    local = anchored_in_frame(frame, face.landmarks, at, offset, scale, f"muscle {muscle!r} bone")
+    hits = cast_onto_front(surface, frame, local[None, :2])
+    on_surface = hits.points[0] if hits.hit[0] else frame.to_world(local[None])[0]
+    return on_surface - float(entry.get("depth_mm", 0.0)) * scale * frame.axes[2]
 
 
 def load_muscles(face: ElasticFace, path=None):
@@ -248,10 +234,10 @@ def load_muscles(face: ElasticFace, path=None):
     """
     if face.frame is None:
         raise ValueError("the face has no landmarks: muscles are placed relative to them")
-    data = _read_muscle_file(path)
+    data = read_data_file(path, "data/elastic_muscles.json", "muscles", "muscles")
     frame = face.frame
-    landmarks = face.landmarks
-    scale = frame.facial_unit / as_positive(data.get("reference_facial_unit_mm", 36.88), "reference_facial_unit_mm")
+    unit = as_positive(data.get("reference_facial_unit_mm", REFERENCE_FACIAL_UNIT_MM), "reference_facial_unit_mm")
+    scale = frame.facial_unit / unit
     positions = dict(zip(face.control_point_names, face.control_point_positions))
     surface = MeshSurface(face.vertices, face.faces)
 
@@ -265,16 +251,8 @@ def load_muscles(face: ElasticFace, path=None):
         try:
             name, kind = entry["name"], entry["type"]
             if kind == "linear":
-                bone = entry["bone"]
-                weights = {k: float(v) for k, v in bone["at"].items()}
-                anchor = sum(w * landmarks[landmark_index(k)] for k, w in weights.items()) / sum(weights.values())
-                if np.isnan(anchor).any():
-                    raise ValueError(f"muscle {name!r}: a landmark of its bony attachment is missing")
-                local = frame.to_frame(anchor[None])[0]
-                local[:2] += np.asarray(bone.get("offset_mm", (0.0, 0.0)), dtype=np.float64) * scale
-                on_surface = _surface_point(surface, frame, local[:2], local[2])
-                position = on_surface - float(bone.get("depth_mm", 0.0)) * scale * frame.axes[2]
-                muscles.append(LinearMuscle(name, position, control_point(entry["skin"], name),
+                muscles.append(LinearMuscle(name, _bone_attachment(entry["bone"], name, face, surface, scale),
+                                            control_point(entry["skin"], name),
                                             angular_zone_deg=float(entry.get("angular_zone_deg", 40.0)),
                                             falloff_mm=entry.get("falloff_mm")))
             elif kind == "sphincter":

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import datasets, render
-from .face import io
-from .face.grid import load_scan
-from .expression_transfer import transfer
+from .. import datasets, render
+from ..face import io
+from ..face.grid import load_scan
+from ..expression import transfer
 
 __all__ = ["run_demo", "DEMO_EXPRESSIONS"]
 

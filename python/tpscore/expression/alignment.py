@@ -29,10 +29,10 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .face.landmarks import MIRROR_LANDMARK
-from .face.normalise import FrameTransform, similarity_transform
-from .face.grid import FaceGrid
-from .spatial import MeshSurface
+from ..face.landmarks import MIRROR_LANDMARK
+from ..face.normalise import FrameTransform, similarity_transform
+from ..face.grid import FaceGrid
+from ..spatial import MeshSurface
 
 __all__ = ["rigid_landmark_fit", "align_rigid", "RigidAlignment", "fit_mirror_symmetry"]
 

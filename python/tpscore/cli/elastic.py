@@ -26,6 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import render
+from ..elastic import ElasticFace, ElasticOptions
+from ..mesh import height_field_remesh
+
 __all__ = ["add_elastic_parser", "elastic_command"]
 
 
@@ -69,10 +73,6 @@ def _subject(model: dict, subject: int) -> np.ndarray:
 
 def elastic_command(args) -> int:
     """Run ``tpscore elastic`` from parsed arguments; returns the exit status."""
-    from . import render
-    from .elastic import ElasticFace
-    from .mesh import height_field_remesh
-
     start = time.perf_counter()
 
     def step(message: str) -> None:
@@ -112,13 +112,14 @@ def elastic_command(args) -> int:
         target_vertices, target_faces, target_landmarks = tgt["vertices"], tgt["faces"], tgt["landmarks"]
         step(f"read {args.source} and {args.target}")
 
-    source = ElasticFace(source_neutral, faces, landmarks=source_landmarks, fixed_factor=args.fixed_factor)
+    source = ElasticFace(source_neutral, faces, landmarks=source_landmarks,
+                         options=ElasticOptions(fixed_factor=args.fixed_factor))
     step(f"source: {len(source.vertices)} vertices, {len(source.handles)} control points, basis in "
          f"{sum(source.timings.values()) * 1e3:.0f} ms")
     learned = source.fit(examples, names)
     step(f"learned {len(names)} expressions; mean reconstruction RMS {learned.rms_mm.mean():.2f} mm")
     target = source.clone_to((target_vertices, target_faces), target_landmarks=target_landmarks,
-                             fixed_factor=args.fixed_factor, unanchored="fix")
+                             options=ElasticOptions(fixed_factor=args.fixed_factor, unanchored="fix"))
     cloned = target.deform(target.expressions.parameters)
     step(f"cloned onto the target ({len(target.vertices)} vertices)")
 

@@ -31,10 +31,10 @@ def add_adapt_parser(sub) -> None:
 
 
 def adapt_command(args) -> int:
-    from . import render
-    from .face import io
-    from .adaptation import adapt
-    from .face.grid import FaceGrid
+    from .. import render
+    from ..face import io
+    from ..adaptation import adapt
+    from ..face.grid import FaceGrid
 
     start = time.perf_counter()
 

@@ -1,0 +1,21 @@
+"""Expression transfer (DESIGN.md, method 1): an AU modelled on a source person and
+animated on a target person. :func:`transfer` (also ``tpscore.transfer``) runs the whole
+pipeline; the stages are modules of their own (alignment, texture, registration with its
+landmark pairs, modelling, animation, and the parts of the method as published)."""
+from __future__ import annotations
+
+from .action_units import ActionUnit, ActionUnitLibrary, Activation, ControlPoint, default_library
+from .alignment import RigidAlignment, align_rigid, fit_mirror_symmetry
+from .animation import Animation, animate
+from .mirror import MirroredMotion
+from .modelling import ExpressionModel, model_expression
+from .options import TransferOptions
+from .pipeline import TransferResult, transfer
+from .registration import DenseMotion, MotionOptions, register_surfaces
+from .texture import TextureMatches, TextureOptions, TextureWarning, track_texture
+
+__all__ = ["transfer", "TransferOptions", "TransferResult", "Animation", "animate", "ExpressionModel",
+           "model_expression", "ActionUnit", "ActionUnitLibrary", "Activation", "ControlPoint",
+           "default_library", "RigidAlignment", "align_rigid", "fit_mirror_symmetry", "MirroredMotion",
+           "DenseMotion", "MotionOptions", "register_surfaces", "TextureMatches", "TextureOptions",
+           "TextureWarning", "track_texture"]

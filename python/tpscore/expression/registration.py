@@ -1,0 +1,299 @@
+"""Dense motion: where every point of a neutral face goes in the same person's
+expressive scan.
+
+Twenty-two landmarks cannot say how the skin slides along the surface between them, and
+their labelling noise (about a millimetre in each scan) is as large as the motion of the
+subtle AUs. This stage registers the neutral surface onto the expressive one (after the
+rigid alignment of :mod:`tpscore.expression.alignment`) and returns a displacement at every
+point of the neutral face.
+
+The registration is a non-rigid iterative-closest-point fit of a smooth field u(x, y)
+(the faces look toward +z, so a field over the x-y plane covers them): a uniform cubic
+B-spline on a lattice of nodes ``spacing_mm`` apart (:mod:`tpscore.lattice`). Each
+iteration solves one least-squares problem, the sum of these terms:
+
+* **geometry**: each data point (a sample of the neutral vertices), moved by the field,
+  pulls along the normal toward its closest point on the expressive surface
+  (point-to-plane), with a Tukey weight of its distance; pairs on the scan's outline or
+  a hole's rim do not pull (:func:`_point_to_plane`);
+* **texture**: with the scans' colour images, each data point also pulls along the
+  surface toward where its skin's pattern went (:mod:`tpscore.expression.texture`,
+  :func:`_texture_pull`);
+* **landmarks**: soft pairs from the labels, refined by the texture or by a patch fit
+  (:mod:`tpscore.expression.landmark_pairs`);
+* **rest**: a weak pull of every node toward no motion, which lets motion the data do
+  not show fade away instead of carrying on; it gives way where the neutral surface's
+  own shape shows the slide (:func:`rest_pull_per_node`);
+* **bending**: the field's thin-plate bending energy, with a stiffness that falls over
+  the iterations, so the field follows the large motions first and the fine ones last.
+
+Every term adds to one sparsity pattern (:class:`tpscore.lattice.LatticeSystem`), so the
+data terms are filled by a compiled kernel and each iteration only refactorises. A new
+term is a function that returns per-data-point 3 x 3 blocks and right-hand sides (a data
+term) or a matrix in the lattice's unknowns (a fixed term). How each term was chosen is
+in ``benchmarks/FIDELITY.md``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from .._validation import check_options
+from ..geometry import off_surface, robust_scale, tukey_weights
+from ..lattice import SYMMETRIC_ENTRIES, BSplineLattice, LatticeSystem
+from ..mesh import face_normals
+from ..spatial import MeshSurface
+from .landmark_pairs import landmark_term
+
+__all__ = ["MotionOptions", "DenseMotion", "register_surfaces", "grid_normals", "rest_pull_per_node"]
+
+#: Pairs farther than this many robust scales from their target do not pull.
+TUKEY_FACTOR = 3.0
+#: The geometry pairs' robust scale is at least this (mm), falling geometrically over the
+#: iterations like the stiffness: a loose bound early keeps the pairs of a region that
+#: moves as a block (AU17's chin) until the stiff field reaches them; a tight one late
+#: keeps noise and stray pairs out.
+SCALE_FLOOR_START_MM = 1.0
+SCALE_FLOOR_END_MM = 0.5
+#: The texture pulls' robust scale is at least this (mm): the flow's noise on still skin.
+TEXTURE_SCALE_FLOOR_MM = 0.3
+#: A node's pull toward rest is scaled by exp(-r / REST_SHAPE_RATIO), r the ratio of the
+#: second to the largest eigenvalue of its data points' normal matrix: flat forehead and
+#: cheeks keep the whole pull, the lips, nose and chin are left to the data.
+REST_SHAPE_RATIO = 0.1
+# A tiny ridge keeps nodes without data or bending coupling determined.
+_RIDGE = 1e-8
+_IDENTITY_BLOCK = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])   # I as symmetric entries
+_UPPER_I, _UPPER_J = np.array(SYMMETRIC_ENTRIES).T
+
+
+@dataclass(frozen=True)
+class MotionOptions:
+    """Settings of the dense registration (:func:`register_surfaces`).
+
+    Attributes
+    ----------
+    spacing_mm : float
+        Node spacing of the B-spline field.
+    sample_step : int
+        Every ``sample_step``-th row and column of the neutral grid is a data point.
+    iterations : int
+        Closest-point iterations.
+    stiffness_start, stiffness_end : float
+        Weight of the bending energy at the first and the last iteration (geometric in
+        between), relative to the data term of one mm^2.
+    landmark_weight : float
+        Weight of a labelled landmark pair relative to one data point.
+    rest_weight : float
+        Weight of every node's pull toward no motion, relative to the bending energy's
+        unit: where neither the surfaces, the texture nor the landmarks say how the skin
+        slides, the field fades away instead of carrying motion on.
+    texture_weight : float
+        Weight of a texture match at full confidence, relative to a point-to-plane pair.
+    texture_refine_after : int
+        Match the texture again after this many iterations, with the expressive image
+        warped back by the field found so far (0 = never, the default). It finds more of
+        the large, deforming motions (the chin under AU17, the mouth corners under AU14)
+        at the cost of a second flow: on the benchmark 0.006 lower residual ratio and
+        0.008 mm more stray motion under AU17.
+    """
+
+    spacing_mm: float = 8.0
+    sample_step: int = 2
+    iterations: int = 10
+    stiffness_start: float = 100.0
+    stiffness_end: float = 1.0
+    landmark_weight: float = 3.0
+    rest_weight: float = 0.01
+    texture_weight: float = 10.0
+    texture_refine_after: int = 0
+
+    def __post_init__(self):
+        check_options(self, positive=("spacing_mm", "stiffness_start", "stiffness_end"),
+                      non_negative=("landmark_weight", "rest_weight", "texture_weight"),
+                      counts=("sample_step", "iterations", ("texture_refine_after", 0)))
+
+
+@dataclass
+class DenseMotion:
+    """A smooth displacement field registered from a neutral onto an expressive surface.
+
+    Attributes
+    ----------
+    lattice : BSplineLattice
+    node_values : (n_nodes, 3) ndarray
+        The field's B-spline coefficients (mm).
+    residual_rms_mm : float
+        RMS point-to-plane distance of the weighted pairs at the end.
+    inlier_fraction : float
+        Share of the data points with a nonzero weight at the end.
+    texture : TextureMatches or None
+        The texture matches the registration weighed last (None: geometry alone).
+    """
+
+    lattice: BSplineLattice
+    node_values: np.ndarray
+    residual_rms_mm: float
+    inlier_fraction: float
+    texture: object = None
+
+    def __call__(self, points) -> np.ndarray:
+        """Displacement (m, 3) at points (m, 3) (their x, y decide; NaN rows give NaN)."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        out = np.full(p.shape, np.nan)
+        ok = np.isfinite(p).all(axis=1)
+        out[ok] = self.lattice.evaluate(p[ok, :2], self.node_values)
+        return out
+
+
+def grid_normals(points) -> np.ndarray:
+    """Unit normals of an (H, W, 3) grid from its row and column tangents (0 where a
+    neighbour is missing); their orientation follows the grid's rows and columns."""
+    normals = np.cross(np.gradient(points, axis=1), np.gradient(points, axis=0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    return np.nan_to_num(normals)
+
+
+def rest_pull_per_node(basis: sp.csr_matrix, normals, rest_weight: float,
+                       shape_ratio: float = REST_SHAPE_RATIO) -> np.ndarray:
+    """The pull toward rest of each node, from the data points' B-spline weights
+    ``basis`` (points x nodes) and unit normals (0 where unknown): ``rest_weight``
+    scaled by exp(-r / shape_ratio), r the ratio of the second to the largest eigenvalue
+    of the node's normal matrix (``shape_ratio`` 0: the same pull everywhere, and
+    ``normals`` is not read)."""
+    if shape_ratio <= 0:
+        return np.full(basis.shape[1], rest_weight)
+    normals = np.asarray(normals, dtype=np.float64)
+    squared = basis.power(2).T.tocsr()
+    # each node's normal matrix; its orientation does not matter for n n^T
+    matrix = np.stack([squared @ (normals[:, a] * normals[:, b]) for a in range(3) for b in range(3)],
+                      axis=1).reshape(-1, 3, 3)
+    eigenvalues = np.linalg.eigvalsh(matrix)
+    ratio = eigenvalues[:, 1] / np.maximum(eigenvalues[:, 2], 1e-12)
+    return rest_weight * np.exp(-ratio / shape_ratio)
+
+
+@dataclass
+class _Pairs:
+    """One iteration's closest points of the moved data points on the expressive surface."""
+
+    moved: np.ndarray       # (m, 3) data points moved by the current field
+    points: np.ndarray      # (m, 3) their closest points
+    distances: np.ndarray   # (m,)
+    normals: np.ndarray     # (m, 3) the surface's normal there
+
+
+def _point_to_plane(sample, pairs: _Pairs, prior, floor):
+    """The geometry term: each pair pulls along the normal toward its closest point,
+    with a Tukey weight of its distance (scale: the robust scale of the distances, at
+    least ``floor``), 0 for pairs off the surface. Returns the (m, 6) blocks w n n^T,
+    the (m, 3) right-hand sides, the weighted rms distance and the share of pairs that
+    pull."""
+    along = np.einsum("ij,ij->i", pairs.moved - pairs.points, pairs.normals)
+    rim = off_surface(along, pairs.distances)
+    scale = robust_scale(pairs.distances[~rim], floor)
+    w = np.where(rim, 0.0, tukey_weights(pairs.distances, TUKEY_FACTOR * scale)) * prior
+    rms = float(np.sqrt(np.average(along ** 2, weights=w))) if w.sum() > 0 else float("nan")
+    blocks = w[:, None] * (pairs.normals[:, _UPPER_I] * pairs.normals[:, _UPPER_J])
+    to_plane = np.einsum("ij,ij->i", pairs.points - sample, pairs.normals)
+    return blocks, pairs.normals * (w * to_plane)[:, None], rms, float(np.mean(w > 0))
+
+
+def _texture_pull(sample, pairs: _Pairs, targets, prior):
+    """The texture term: each data point pulls along the expressive surface toward its
+    texture match q, the energy w |P (s + u(s) - q)|^2 with P = I - n n^T and w the
+    match's weight times a Tukey weight of its tangential residual. Returns the (m, 6)
+    blocks w P and the (m, 3) right-hand sides w P (q - s)."""
+    normals = pairs.normals
+    offset = pairs.moved - targets
+    offset -= np.einsum("ij,ij->i", offset, normals)[:, None] * normals
+    residual = np.linalg.norm(offset, axis=1)
+    used = prior > 0
+    scale = robust_scale(residual[used], TEXTURE_SCALE_FLOOR_MM)
+    w = np.where(used, tukey_weights(residual, TUKEY_FACTOR * scale), 0.0) * prior
+    blocks = w[:, None] * (_IDENTITY_BLOCK - normals[:, _UPPER_I] * normals[:, _UPPER_J])
+    to_target = targets - sample
+    to_target -= np.einsum("ij,ij->i", to_target, normals)[:, None] * normals
+    return blocks, w[:, None] * to_target
+
+
+def _texture_samples(texture, sample_mask, prior, options: MotionOptions):
+    """The data points' texture matches (zeros where none) and their weights."""
+    targets = texture.targets[sample_mask]
+    weight = options.texture_weight * texture.confidence[sample_mask] * prior
+    weight[~np.isfinite(targets).all(axis=1)] = 0.0
+    return np.nan_to_num(targets), weight
+
+
+def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressive_surface: MeshSurface,
+                      expressive_landmarks, options: MotionOptions = MotionOptions(), weight=None,
+                      texture=None) -> DenseMotion:
+    """Register a neutral face grid onto an expressive surface of the same person.
+
+    Parameters
+    ----------
+    neutral_points : (H, W, 3) ndarray
+        The neutral grid (mm), NaN where invalid, in the same frame as the expressive
+        surface (rigidly aligned).
+    neutral_mask : (H, W) bool ndarray
+    neutral_landmarks, expressive_landmarks : (22, 3) ndarray
+        Landmarks of the two scans in that frame (NaN rows missing).
+    expressive_surface : MeshSurface
+    options : MotionOptions
+    weight : (H, W) ndarray, optional
+        Extra weight of each neutral vertex as a data point (e.g. 0 where the field is
+        known to be still); default 1.
+    texture : TextureMatches, optional
+        Matches of the neutral grid's vertices on the expressive surface by their skin's
+        pattern (:func:`tpscore.expression.texture.track_texture`); without them the
+        geometry and the landmarks alone say how the skin slides.
+
+    Returns
+    -------
+    DenseMotion
+    """
+    points = np.asarray(neutral_points, dtype=np.float64)
+    mask = np.asarray(neutral_mask, dtype=bool)
+    sample_mask = np.zeros(mask.shape, dtype=bool)
+    sample_mask[::options.sample_step, ::options.sample_step] = True
+    sample_mask &= mask
+    sample = points[sample_mask]
+    prior = np.ones(len(sample)) if weight is None else np.asarray(weight, dtype=np.float64)[sample_mask]
+    valid = points[mask]
+    lattice = BSplineLattice(valid[:, :2].min(axis=0), valid[:, :2].max(axis=0), options.spacing_mm)
+    system = LatticeSystem(lattice, sample[:, :2])
+    basis, n_nodes = system.basis, lattice.n_nodes
+    # the terms that do not change over the iterations, in the system's pattern
+    landmarks, landmark_rhs = landmark_term(lattice, points, mask, neutral_landmarks, expressive_landmarks,
+                                            expressive_surface, options.landmark_weight, texture)
+    rest = rest_pull_per_node(basis, grid_normals(points)[sample_mask], options.rest_weight)
+    fixed_values = system.aligned(landmarks + sp.block_diag([sp.diags(_RIDGE + rest, format="csr")] * 3))
+    bending_values = system.aligned(sp.block_diag([lattice.bending()] * 3))
+    if texture is not None:
+        texture_targets, texture_prior = _texture_samples(texture, sample_mask, prior, options)
+    surface_normals = face_normals(expressive_surface.vertices, expressive_surface.faces)
+    stiffness = np.geomspace(options.stiffness_start, options.stiffness_end, options.iterations)
+    floors = np.geomspace(SCALE_FLOOR_START_MM, SCALE_FLOOR_END_MM, options.iterations)
+    values = np.zeros((n_nodes, 3))
+    residual_rms, inliers = float("nan"), 0.0
+    for iteration, (alpha, floor) in enumerate(zip(stiffness, floors)):
+        if texture is not None and iteration > 0 and iteration == options.texture_refine_after:
+            # the stiff first iterations have found the large motions: match the texture
+            # again with the expressive image warped back by them
+            displacement = np.full(points.shape, np.nan)
+            displacement[mask] = lattice.evaluate(valid[:, :2], values)
+            texture = texture.refined(displacement)
+            texture_targets, texture_prior = _texture_samples(texture, sample_mask, prior, options)
+        moved = sample + basis @ values
+        closest = expressive_surface.closest_point(moved)
+        pairs = _Pairs(moved, closest.points, closest.distances, surface_normals[closest.triangles])
+        blocks, rhs, residual_rms, inliers = _point_to_plane(sample, pairs, prior, floor)
+        if texture is not None:
+            texture_blocks, texture_rhs = _texture_pull(sample, pairs, texture_targets, texture_prior)
+            blocks, rhs = blocks + texture_blocks, rhs + texture_rhs
+        matrix_values = system.data_term(blocks) + alpha * bending_values + fixed_values
+        values = system.solve(matrix_values, (basis.T @ rhs + landmark_rhs).T.ravel()).reshape(3, n_nodes).T.copy()
+    return DenseMotion(lattice, values, residual_rms, inliers, texture)
