@@ -34,9 +34,19 @@ from .expression import (
     track_texture,
     transfer,
 )
-from .adaptation import AdaptationWarning, AdaptLevel, AdaptResult, Correspondences, adapt
-from .calibration import AxesCalibration, axes_calibration, calibrate
-from .correspondence import FeatureMesh, curvature_features
+from .adaptation import (
+    AdaptationWarning,
+    AdaptLevel,
+    AdaptOptions,
+    AdaptResult,
+    AxesCalibration,
+    Correspondences,
+    FeatureMesh,
+    adapt,
+    axes_calibration,
+    calibrate,
+    curvature_features,
+)
 from .csrbf import CSRBF, ConvergenceError, wendland
 from .elastic import ElasticFace, ElasticOptions, ExpressionSet, LinearMuscle, MuscleModel, SphincterMuscle
 from .face.io import (
@@ -138,6 +148,7 @@ __all__ = [
     "wendland",
     # template adaptation
     "adapt",
+    "AdaptOptions",
     "AdaptResult",
     "AdaptLevel",
     "AdaptationWarning",

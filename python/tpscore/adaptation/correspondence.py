@@ -1,17 +1,19 @@
 """New template-to-scan correspondences for each level of template adaptation.
 
-Three sources, all paired by rays so that a pair is only made where both surfaces
-are really there (a ray that misses, e.g. over a hole, gives no pair, never a guess):
+The published levels take theirs from two sources, both paired by rays so that a pair
+is only made where both surfaces are really there (a ray that misses, e.g. over a
+hole, gives no pair, never a guess):
 
 * the feature mesh: a triangulation of the corresponding feature points of the
   template and of the scan; each triangle is split at its barycentre, and a ray
   along the triangle's normal from that barycentre meets each surface at the new
   feature point (Kaehler et al.'s refinement). The points accumulate over levels;
 * the template vertices of largest mean curvature (Meyer et al.) inside a bounding
-  box of the face, paired with the scan by a ray along the deformed normal;
-* optionally, evenly spread template vertices paired the same way, so the fit also
-  reaches the parts of the face outside the feature points' hull (forehead,
-  cheeks), where no feature triangle and few curvature vertices lie.
+  box of the face, paired with the scan by a ray along the deformed normal.
+
+The default ``"surface"`` refinement pairs differently: every visible template vertex
+with its closest scan point (:func:`closest_visible_pairs`), on centres spread evenly
+over the template (:func:`spread_vertices`).
 """
 from __future__ import annotations
 
@@ -20,13 +22,14 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import Delaunay
 
-from ._validation import as_faces, as_points
-from .mesh import face_normals, mean_curvature
-from .spatial import MeshSurface
+from .._validation import as_faces, as_points
+from ..mesh import boundary_vertices, face_normals, mean_curvature, vertex_normals
+from ..spatial import MeshSurface
 
 __all__ = [
     "FeatureMesh",
     "ScanTarget",
+    "closest_visible_pairs",
     "curvature_features",
     "self_occluded",
     "spread_vertices",
@@ -47,8 +50,6 @@ class ScanTarget:
     """
 
     def __init__(self, vertices, faces):
-        from .mesh import boundary_vertices, vertex_normals
-
         self.vertices = as_points(vertices, "scan vertices", allow_empty=False)
         self.faces = as_faces(faces, len(self.vertices), "scan faces")
         if len(self.faces) == 0:
@@ -109,7 +110,6 @@ class ScanTarget:
         points[where[ok]] = rays.points[ok]
         return hit, points
 
-
     def closest(self, points, normals, *, max_distance: float, min_cos: float = 0.5):
         """Pair points with their closest scan point (for point-to-plane fitting).
 
@@ -152,8 +152,8 @@ def _plane_axes(view_direction) -> np.ndarray:
     """Two unit vectors spanning the plane orthogonal to the view direction."""
     view = np.asarray(view_direction, dtype=np.float64)
     view = view / np.linalg.norm(view)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(view[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = helper - (helper @ view) * view
+    start = np.array([1.0, 0.0, 0.0]) if abs(view[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = start - (start @ view) * view
     u /= np.linalg.norm(u)
     return np.stack([u, np.cross(view, u)], axis=1)
 
@@ -241,18 +241,16 @@ class FeatureMesh:
         new_template_points, new_scan_points : (k, 3) ndarray
             The new pairs (only those where both rays hit).
         """
-        t = self.template_points[self.triangles]
-        s = self.scan_points[self.triangles]
-        t_normals = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-        s_normals = np.cross(s[:, 1] - s[:, 0], s[:, 2] - s[:, 0])
-        area = 0.5 * np.linalg.norm(t_normals, axis=1)
-        big = area >= min_area
+        big = _triangle_areas(self.template_points, self.triangles) >= min_area
         if not big.any():
             return self, np.zeros((0, 3)), np.zeros((0, 3))
-        t_centres, s_centres = t[big].mean(axis=1), s[big].mean(axis=1)
-        t_hits = template.intersect_rays(t_centres, t_normals[big], max_distance=max_distance,
-                                         both_directions=True)
-        s_hit, s_points = scan.cast(s_centres, s_normals[big], max_distance=max_distance, min_cos=0.0)
+        triangles = self.triangles[big]
+        t_centres = self.template_points[triangles].mean(axis=1)
+        s_centres = self.scan_points[triangles].mean(axis=1)
+        t_hits = template.intersect_rays(t_centres, face_normals(self.template_points, triangles),
+                                         max_distance=max_distance, both_directions=True)
+        s_hit, s_points = scan.cast(s_centres, face_normals(self.scan_points, triangles),
+                                    max_distance=max_distance, min_cos=0.0)
         both = t_hits.hit & s_hit
         new_t, new_s = t_hits.points[both], s_points[both]
         if len(new_t) == 0:
@@ -262,6 +260,13 @@ class FeatureMesh:
         refined = FeatureMesh(template_points, scan_points,
                               triangulate_features(template_points, self.view_direction), self.view_direction)
         return refined, new_t, new_s
+
+
+def _triangle_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Areas (mm^2): half the length of the edges' cross product."""
+    a = points[triangles[:, 1]] - points[triangles[:, 0]]
+    b = points[triangles[:, 2]] - points[triangles[:, 0]]
+    return 0.5 * np.linalg.norm(np.cross(a, b), axis=1)
 
 
 def _greedy_spread(order: np.ndarray, points: np.ndarray, spacing: float) -> np.ndarray:
@@ -402,3 +407,36 @@ def self_occluded(vertices, faces, view_direction, *, offset: float = 0.3,
     rays = surface.intersect_rays(vertices + offset * view, np.broadcast_to(view, vertices.shape),
                                   max_distance=max_distance)
     return rays.hit.copy()
+
+
+def closest_visible_pairs(points, normals, faces, scan: ScanTarget, view_direction, *, max_distance: float):
+    """Pair the vertices of a fitted template that the scanner could have seen with their
+    closest scan points (point-to-plane pairs for the ``"surface"`` refinement and the
+    snap).
+
+    A vertex is visible when its normal is within about 78 degrees of the view direction
+    (cos >= 0.2) and no part of the template hides it (:func:`self_occluded`).
+
+    Parameters
+    ----------
+    points, normals : (n, 3) ndarray
+        The fitted template's vertices (mm) and unit normals.
+    faces : (m, 3) int ndarray
+    scan : ScanTarget
+    view_direction : (3,) ndarray or None
+        Unit direction toward the scanner; None: every vertex counts as visible.
+    max_distance : float
+        Partners farther than this (mm) are dropped.
+
+    Returns
+    -------
+    rows : (k,) int64
+        The paired vertices.
+    partners, partner_normals : (k, 3) ndarray
+        Their closest scan points and the scan's unit normals there.
+    """
+    rows = np.arange(len(points))
+    if view_direction is not None:
+        rows = rows[(normals @ view_direction >= 0.2) & ~self_occluded(points, faces, view_direction)]
+    hit, partners, partner_normals = scan.closest(points[rows], normals[rows], max_distance=max_distance)
+    return rows[hit], partners[hit], partner_normals[hit]
