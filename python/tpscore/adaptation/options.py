@@ -191,8 +191,10 @@ class AdaptOptions:
         smoothing, the curvature count) keeps the defaults.
 
         Kept as the reference the default is measured against: on the adaptation
-        benchmark it is less accurate (docs/adaptation.md). Needs the 22 Bosphorus
-        landmarks for the axes calibration and the feature box.
+        benchmark it is less accurate (docs/adaptation.md). The axes calibration and
+        the feature box need the 22 Bosphorus landmarks, the calibration at least the
+        chin, an eye corner and a left/right pair; ``published(calibration="similarity")``
+        does without.
 
         Parameters
         ----------
