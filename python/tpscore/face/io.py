@@ -60,6 +60,17 @@ _BNT_LEN2 = struct.Struct("<I")
 
 # --------------------------------------------------------------------------- helpers
 
+def _current_umask() -> int:
+    # the umask can only be read by setting it; done once, at import, before any thread
+    # of tpscore's writes
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _current_umask()
+
+
 def _atomic_write(path, data: bytes) -> None:
     """Write `data` to `path` through a temporary file in the same folder, then rename.
 
@@ -74,6 +85,9 @@ def _atomic_write(path, data: bytes) -> None:
     try:
         with os.fdopen(handle, "wb") as fh:
             fh.write(data)
+        # mkstemp makes the file private (0600); a written result gets the permissions
+        # open() would have given it, so others can read a page or mesh as usual
+        os.chmod(tmp_name, 0o666 & ~_UMASK)
         os.replace(tmp_name, path)
     except BaseException:
         try:
