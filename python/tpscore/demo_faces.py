@@ -24,7 +24,6 @@ toward +z).
 """
 from __future__ import annotations
 
-import io
 import re
 import zlib
 from dataclasses import dataclass, field
@@ -33,10 +32,9 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from .face.io import BntScan, write_bnt, write_lm3, _atomic_write
+from .face.io import BntScan, write_bnt, write_lm3, write_png
 from .mesh import vertex_normals
 from .raster import rasterise
 from .spatial import KDTree, MeshSurface
@@ -384,7 +382,7 @@ class DemoScan:
         folder = Path(folder)
         scan = BntScan(self.scan.nrows, self.scan.ncols, self.scan.zmin, f"{stem}.png",
                        self.scan.points, self.scan.uv, self.scan.valid)
-        _write_png(folder / f"{stem}.png", self.image)
+        write_png(folder / f"{stem}.png", self.image)
         write_lm3(folder / f"{stem}.lm3", self.landmarks)
         write_bnt(folder / f"{stem}.bnt", scan)
         return folder / f"{stem}.bnt"
@@ -410,12 +408,6 @@ class DemoScan:
         delta = model.expression_delta(expression) @ self.pose[:3, :3].T
         corners = self.faces[closest.triangles]
         return closest.points + np.einsum("kj,kjd->kd", closest.barycentric, delta[corners])
-
-
-def _write_png(path, image: np.ndarray) -> None:
-    buffer = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(image), "RGB").save(buffer, format="PNG")
-    _atomic_write(path, buffer.getvalue())
 
 
 def _random_pose(rng, pose_deg: float, pivot: np.ndarray) -> np.ndarray:
