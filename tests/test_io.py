@@ -452,8 +452,8 @@ def test_textured_obj_reads_back_with_its_colours_where_they_belong(tmp_path):
     faces = np.concatenate([np.column_stack([index[:-1, :-1].ravel(), index[1:, :-1].ravel(), index[1:, 1:].ravel()]),
                             np.column_stack([index[:-1, :-1].ravel(), index[1:, 1:].ravel(), index[:-1, 1:].ravel()])])
     obj, mtl, png = write_textured_obj(tmp_path / "face.obj", vertices, faces, uv, quadrant_image())
-    assert (obj.name, mtl.name, png.name) == ("face.obj", "face.mtl", "face.png")
-    assert "map_Kd face.png" in mtl.read_text() and "mtllib face.mtl" in obj.read_text()
+    assert (obj.name, mtl.name, png.name) == ("face.obj", "face.mtl", "face_texture.png")
+    assert "map_Kd face_texture.png" in mtl.read_text() and "mtllib face.mtl" in obj.read_text()
     loaded = trimesh.load(str(obj), process=False, maintain_order=True)
     assert np.allclose(loaded.vertices, vertices)
     assert loaded.visual.material.image.size == (60, 40)

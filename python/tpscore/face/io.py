@@ -796,7 +796,7 @@ def _obj_bytes(vertices, faces, uv, colors, header: tuple[str, ...] = ()) -> byt
 
 
 def write_textured_obj(path, vertices, faces, uv, image, *, material: str = "skin") -> tuple[Path, Path, Path]:
-    """Write a mesh textured by an image: ``NAME.obj``, ``NAME.mtl`` and ``NAME.png``.
+    """Write a mesh textured by an image: ``NAME.obj``, ``NAME.mtl`` and ``NAME_texture.png``.
 
     MeshLab, Blender, trimesh and most viewers show the mesh in the image's colours. The
     image and the material are written first, the OBJ last (each atomically), so an OBJ
@@ -805,7 +805,9 @@ def write_textured_obj(path, vertices, faces, uv, image, *, material: str = "ski
     Parameters
     ----------
     path : str or PathLike
-        The ``.obj`` file; the ``.mtl`` and ``.png`` take its stem, in its folder.
+        The ``.obj`` file; the ``.mtl`` and the ``_texture.png`` take its stem, in its
+        folder (the image's name differs from the stem so that a picture named like the
+        mesh, ``result.obj`` beside ``result.png``, does not overwrite the texture).
     vertices : (n, 3) array-like, mm, finite
     faces : (m, 3) integer array-like
     uv : (n, 2) array-like
@@ -833,7 +835,7 @@ def write_textured_obj(path, vertices, faces, uv, image, *, material: str = "ski
     if len(uv) != len(vertices):
         raise ValueError(f"uv must have shape ({len(vertices)}, 2), got {uv.shape}")
     picture = as_colour_image(image, "image")
-    mtl_path, png_path = path.with_suffix(".mtl"), path.with_suffix(".png")
+    mtl_path, png_path = path.with_suffix(".mtl"), path.with_name(f"{path.stem}_texture.png")
     write_png(png_path, picture)
     _atomic_write(mtl_path, (
         "# written by tpscore\n"
