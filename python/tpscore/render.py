@@ -457,7 +457,7 @@ def error_heatmap(vertices, faces, errors_mm, *, vmax: float | None = None, widt
 
 def motion_map(vertices, faces, displacement, *, vmax: float | None = None, width: int = 400,
                height: int = 400, view="front", camera: Camera | None = None,
-               arrow_spacing: int = 18, background=DEFAULT_BACKGROUND) -> np.ndarray:
+               arrow_spacing: int = 22, background=DEFAULT_BACKGROUND) -> np.ndarray:
     """A displacement field on the face it moves: its size as colours, its direction as
     arrows, with a colour bar.
 
@@ -477,7 +477,7 @@ def motion_map(vertices, faces, displacement, *, vmax: float | None = None, widt
         square lattice of this spacing and show the motion seen from the camera,
         lengthened by one factor for the whole picture (written in its lower left
         corner) so that the longest arrows are about as long as the spacing. Motion
-        under a tenth of the largest gets no arrow.
+        under a tenth of the largest, and arrows shorter than 5 pixels, are not drawn.
 
     Returns
     -------
@@ -528,7 +528,7 @@ def _arrow(draw, tail, head) -> None:
     """A black arrow with a light halo, so it shows on every colour of the map."""
     vector = np.asarray(head) - np.asarray(tail)
     length = float(np.hypot(*vector))
-    if length < 1.5:
+    if length < 5.0:   # shorter arrows are blots, not directions
         return
     direction = vector / length
     barb = min(5.0, 0.4 * length)
