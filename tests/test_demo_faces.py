@@ -49,6 +49,9 @@ def test_depth_is_the_mesh_seen_from_the_front(neutral):
 
 
 def test_written_scan_reads_back_with_its_image_and_landmarks(neutral, tmp_path):
+    with pytest.raises(ValueError, match="stem"):
+        neutral.write(tmp_path, "personne à droite")
+    assert not list(tmp_path.iterdir())
     path = neutral.write(tmp_path, "person0")
     assert {p.name for p in tmp_path.iterdir()} == {"person0.bnt", "person0.lm3", "person0.png"}
     grid = load_scan(path)

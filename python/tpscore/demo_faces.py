@@ -380,6 +380,9 @@ class DemoScan:
         """Write ``stem.bnt``, ``stem.png`` (the image it names) and ``stem.lm3`` into
         `folder` (which must exist); returns the ``.bnt`` path."""
         folder = Path(folder)
+        # the .bnt stores the image's name in ASCII: check it before anything is written
+        if not stem or not all(32 < ord(c) < 127 for c in stem) or "/" in stem or "\\" in stem:
+            raise ValueError(f"stem must be a file name of printable ASCII without spaces, got {stem!r}")
         scan = BntScan(self.scan.nrows, self.scan.ncols, self.scan.zmin, f"{stem}.png",
                        self.scan.points, self.scan.uv, self.scan.valid)
         write_png(folder / f"{stem}.png", self.image)

@@ -229,7 +229,7 @@
   canvas.addEventListener("pointercancel", function () { drag = null; });
   canvas.addEventListener("wheel", function (event) {
     event.preventDefault();
-    camera.zoom = Math.max(0.3, Math.min(3, camera.zoom * Math.exp(event.deltaY * 0.001)));
+    camera.zoom = Math.max(0.5, Math.min(3, camera.zoom * Math.exp(event.deltaY * 0.001)));
     redraw();
   }, { passive: false });
   canvas.addEventListener("dblclick", function () {
