@@ -150,6 +150,9 @@ def main(argv=None) -> int:
         variants[name] = replace(default, motion=replace(default.motion, **changes))
     for name in ABLATIONS:
         variants[name] = default
+    # the parts of texture tracking that are TextureOptions fields, turned off
+    variants["no-consistency-check"] = replace(default, texture=replace(default.texture, consistency_px=1e9))
+    variants["no-rim-check"] = replace(default, texture=replace(default.texture, rim_px=0))
     for name in args.variants:
         if name not in variants and name != "noop":
             raise SystemExit(f"unknown variant {name!r}")

@@ -2,13 +2,14 @@
 
 The public API lives in the submodules and is re-exported here; the compiled
 kernels in ``tpscore._core`` are private. Procedural faces are in
-:mod:`tpscore.datasets` and headless rendering in :mod:`tpscore.render`.
+:mod:`tpscore.datasets`, the demo's faces in :mod:`tpscore.demo_faces`, headless
+rendering in :mod:`tpscore.render` and the browser page of a result in
+:mod:`tpscore.viewer`.
 """
 from __future__ import annotations
 
-from importlib import metadata as _metadata
-
-from . import datasets, render
+from . import datasets, render, viewer
+from ._version import __version__
 from .face import landmarks
 from ._threads import max_threads, num_threads, set_num_threads
 from .face.average_face import AverageFace, build_average_face, load_average_face
@@ -76,10 +77,6 @@ from .rbf import RBF, RBF_KERNELS, TPS
 from .sparse import PatternCholesky, SparseCholesky
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
 
-try:
-    __version__ = _metadata.version("tpscore")
-except _metadata.PackageNotFoundError:  # imported from a source tree that was never installed
-    __version__ = "0+unknown"
 
 __all__ = [
     # kernels
@@ -142,6 +139,7 @@ __all__ = [
     # submodules
     "datasets",
     "render",
+    "viewer",
     # compactly supported RBF
     "CSRBF",
     "ConvergenceError",

@@ -139,6 +139,13 @@ class AdaptResult:
             raise ValueError(f"level must be one of the computed levels 0..{len(self.fields) - 1}, got {level!r}")
         return self.transform.apply_inverse(evaluate_fields(self.fields[: int(level) + 1], points))
 
+    def __repr__(self) -> str:
+        best = next((lv for lv in self.levels if lv.level == self.best_level), None)
+        error = f", E {best.error:.3g}" if best is not None else ""
+        return (f"AdaptResult({len(self.vertices)} vertices, best level {self.best_level} of "
+                f"{len(self.levels)}{error}, {len(self.correspondences.template_points)} pairs, "
+                f"{len(self.outlier_landmarks)} outlier landmarks, {len(self.warnings)} warnings)")
+
     def table(self) -> str:
         """The per-level figures as a Markdown table."""
         rows = ["| level | method | sigma (mm) | pairs | Ed (mm^2) | Em (mm^2) | E | coverage | time (s) |",

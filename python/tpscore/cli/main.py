@@ -1,8 +1,10 @@
 """The ``tpscore`` command line.
 
     tpscore transfer --source-neutral A --source-expr B --target C --au 12 [--magnitude 0.8]
-                     [--out result.npz] [--mesh result.obj] [--png result.png] [--gif sweep.gif]
+                     [--out result.npz] [--mesh result.obj|.ply] [--png result.png] [--gif sweep.gif]
+                     [--html result.html]
     tpscore demo [--out DIR]
+    tpscore --version
     tpscore build-afm [--out average_face.npz]
     tpscore elastic --face-model face_model.npz --out DIR   (fit and clone expressions)
     tpscore adapt TEMPLATE SCAN --template-landmarks T.lm3 --scan-landmarks S.lm3 --out fitted.obj
@@ -19,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import render
+from .._version import __version__
 from ..expression import TransferOptions, align_rigid, transfer
 from ..face import io
 from ..face.average_face import afm_faces, build_average_face
@@ -28,6 +30,7 @@ from ..spatial import MeshSurface
 from .adapt import add_adapt_parser, adapt_command
 from .demo import run_demo
 from .elastic import add_elastic_parser, elastic_command
+from .outputs import transfer_picture, write_result_mesh, write_result_page, write_sweep_gif
 
 __all__ = ["main"]
 
@@ -59,9 +62,15 @@ def _add_transfer(sub) -> None:
                    help="default (best measured) or published (the method as published)")
     p.add_argument("--grid", default="150x150", help="grid size HxW (default 150x150)")
     p.add_argument("--out", metavar="NPZ", help="write vertices/neutral/mask (target scan frame) and more")
-    p.add_argument("--mesh", metavar="OBJ|PLY", help="write the animated target as a mesh with u,v")
-    p.add_argument("--png", metavar="PNG", help="write renders of source, expression, target and result")
+    p.add_argument("--mesh", metavar="OBJ|PLY",
+                   help="write the animated target: an OBJ textured by the target's image (with NAME.mtl "
+                        "and NAME_texture.png beside it), or a PLY with vertex colours")
+    p.add_argument("--png", metavar="PNG",
+                   help="write pictures of source, expression, measured motion, target and result")
     p.add_argument("--gif", metavar="GIF", help="write an animation of the magnitude sweep 0 -> m -> 0")
+    p.add_argument("--html", metavar="HTML",
+                   help="write a page to open in a browser: the animated target in its colours, to turn "
+                        "and zoom, with a slider for the magnitude")
     p.add_argument("--truth", metavar="D",
                    help="a real expressive scan of the target: adds an error heat map to --png "
                         "(surface distance after a rigid alignment) and prints the RMS")
@@ -89,15 +98,14 @@ def run_transfer(args) -> int:
         grids.append(load_scan(path, lm, shape=shape))
         progress.step(f"read and resampled {path}")
     options = TransferOptions.published() if args.method == "published" else TransferOptions()
-    result = transfer(*grids, args.au, args.magnitude, options=options)
+    result = transfer(*grids, args.au, args.magnitude, options=options, progress=progress.step)
     progress.step(f"transferred {'+'.join(result.animation.labels)} at magnitude {args.magnitude:g}")
     if args.out:
         io.write_npz(args.out, **result.to_npz_dict())
         progress.step(f"wrote {args.out}")
     if args.mesh:
-        mesh = result.target.grid.with_points(result.vertices).mesh()
-        io.write_mesh(args.mesh, mesh.vertices, mesh.faces, uv=mesh.uv)
-        progress.step(f"wrote {args.mesh}")
+        written = write_result_mesh(result, args.mesh)
+        progress.step(f"wrote {', '.join(str(p) for p in written)}")
     errors = None
     if args.truth:
         truth = load_scan(args.truth, args.truth_landmarks, shape=shape)
@@ -109,22 +117,16 @@ def run_transfer(args) -> int:
                       f"({int(moving.sum())} vertices): rms {rms(errors[moving]):.2f} mm "
                       f"(the neutral target: {rms(neutral_errors[moving]):.2f} mm)")
     if args.png:
-        images = [render.render_grid(g.points, g.mask) for g in grids]
-        images.append(render.render_grid(result.vertices, result.mask))
-        titles = ["source neutral", "source expressive", "target neutral",
-                  f"target {'+'.join(result.animation.labels)} m={args.magnitude:g}"]
-        if errors is not None:
-            mesh = result.target.grid.with_points(result.vertices).mesh()
-            images.append(render.error_heatmap(mesh.vertices, mesh.faces,
-                                               np.nan_to_num(errors.reshape(-1)[mesh.grid_index])))
-            titles.append("distance to the true scan (mm)")
-        render.save_png(args.png, render.side_by_side(images, titles))
+        picture = transfer_picture(grids, result, errors=errors,
+                                   titles={"error": "distance to the true scan (mm)"})
+        io.write_png(args.png, picture)
         progress.step(f"wrote {args.png}")
     if args.gif:
-        ms = np.concatenate([np.linspace(0, args.magnitude, 8), np.linspace(args.magnitude, 0, 8)[1:]])
-        frames = [render.render_grid(result.animation.frame_in_scan(m), result.mask) for m in ms]
-        render.save_gif(args.gif, frames, fps=12)
+        write_sweep_gif(result, args.gif, frames=16)
         progress.step(f"wrote {args.gif}")
+    if args.html:
+        write_result_page(result, args.html)
+        progress.step(f"wrote {args.html}")
     return 0
 
 
@@ -163,10 +165,12 @@ def run_demo_command(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tpscore", description="Morph and animate 3D faces with TPS and RBFs.")
+    parser.add_argument("--version", action="version", version=f"tpscore {__version__}")
     parser.add_argument("--traceback", action="store_true", help="show a full traceback on errors")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_transfer(sub)
-    d = sub.add_parser("demo", help="run the whole pipeline on embedded faces; write meshes and pictures")
+    d = sub.add_parser("demo", help="transfer expressions between two real faces shipped with tpscore; "
+                                    "write meshes, pictures and pages, scored against the truth")
     d.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
     d.add_argument("--quiet", action="store_true")
     add_elastic_parser(sub)

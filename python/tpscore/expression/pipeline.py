@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 
@@ -25,15 +25,34 @@ from .options import TransferOptions
 
 __all__ = ["TransferResult", "transfer"]
 
+_STAGE_MESSAGES = {"normalise": "normalised the faces", "align": "aligned the expressive scan",
+                   "model": "measured the source's motion", "animate": "carried the motion onto the target"}
+
 
 @dataclass
 class TransferResult:
-    """The target wearing the expression, in the reference frame and in its scan frame."""
+    """The target wearing the expression, in the reference frame and in its scan frame.
+
+    ``vertices``, ``neutral``, ``mask``, ``uv``, ``image`` and ``colours`` describe the
+    animated target on its grid, in the target scan's own frame, with the target's own
+    colours; ``animation`` gives any other magnitude.
+    """
 
     animation: Animation
     magnitude: float | Mapping[str, float]
     model: ExpressionModel
     timings: dict = field(default_factory=dict)  # seconds per stage
+
+    def __repr__(self) -> str:
+        height, width = self.mask.shape
+        if isinstance(self.magnitude, Mapping):
+            amount = ", ".join(f"{k}={float(v):g}" for k, v in self.magnitude.items())
+        else:
+            amount = f"m={float(self.magnitude):g}"
+        colour = "colour" if self.image is not None else "no colour"
+        return (f"TransferResult({'+'.join(self.animation.labels)} at {amount} on a {height}x{width} target "
+                f"({int(self.mask.sum())} valid vertices, {colour}), scan frame <- "
+                f"{self.target.transform.method} normalisation, {sum(self.timings.values()):.2f} s)")
 
     @property
     def target(self) -> NormalisedFace:
@@ -59,7 +78,42 @@ class TransferResult:
 
     @property
     def mask(self) -> np.ndarray:
+        """(H, W) bool, the target grid's valid vertices."""
         return self.target.grid.mask
+
+    @property
+    def uv(self) -> np.ndarray:
+        """(H, W, 2) each target vertex's place in :attr:`image` (u right, v down)."""
+        return self.target.grid.uv
+
+    @property
+    def image(self) -> np.ndarray | None:
+        """The target scan's colour image (None for a scan without one)."""
+        return self.target.grid.image
+
+    @property
+    def colours(self) -> np.ndarray | None:
+        """(H, W, 3) float32 RGB in [0, 1]: the target's colour at each vertex, which the
+        skin keeps as it moves (NaN where the mask is False); None without an image."""
+        return self.target.grid.colours
+
+    def field_in_scan(self) -> np.ndarray:
+        """(H, W, 3) the displacement at the result's magnitude, in the target scan's
+        frame (NaN where the mask is False). The animation is linear in the magnitude,
+        so the target at a fraction t of it is ``neutral + t * field_in_scan()``."""
+        return self.vertices - self.neutral
+
+    def measured_motion(self) -> np.ndarray | None:
+        """(H, W, 3) the source's measured displacement at each vertex of its neutral
+        grid, in the reference frame (NaN off the mask): what the transfer carried.
+        None for the method as published, which measures control points only (see
+        ``model.motions``)."""
+        if self.model.dense is None:
+            return None
+        grid = self.model.source.grid
+        motion = np.full(grid.points.shape, np.nan)
+        motion[grid.mask] = self.model.dense(grid.points[grid.mask])
+        return motion
 
     def to_npz_dict(self) -> dict:
         """Arrays for ``--out result.npz`` (scan-frame arrays first, as scorers expect)."""
@@ -75,7 +129,8 @@ class TransferResult:
 
 def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: FaceGrid, action_units,
              magnitude=1.0, *, reference=None, library: ActionUnitLibrary | None = None,
-             options: TransferOptions = TransferOptions()) -> TransferResult:
+             options: TransferOptions = TransferOptions(),
+             progress: Callable[[str], None] | None = None) -> TransferResult:
     """Put the source's expression on the target.
 
     Parameters
@@ -94,6 +149,9 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
         Default: the shipped library.
     options : TransferOptions
         Pipeline choices; ``TransferOptions.published()`` is the method as published.
+    progress : callable, optional
+        Called with a short message as each stage ends (the command line prints them;
+        the modelling stage takes most of a transfer's time).
 
     Returns
     -------
@@ -108,6 +166,8 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
         now = time.perf_counter()
         timings[stage] = now - clock
         clock = now
+        if progress is not None and stage in _STAGE_MESSAGES:
+            progress(f"{_STAGE_MESSAGES[stage]} ({timings[stage]:.2f} s)")
 
     activations = (library or default_library()).parse(action_units)
     reference_face = (reference or load_average_face()).as_normalised_face()

@@ -159,6 +159,13 @@ class FaceGrid:
         if self.image is not None:
             self.image = _as_colour_image(self.image)
 
+    def __repr__(self) -> str:
+        height, width = self.shape
+        present = int(np.count_nonzero(self.landmark_vertices >= 0))
+        image = "no image" if self.image is None else f"image {self.image.shape[1]}x{self.image.shape[0]}"
+        return (f"FaceGrid({height}x{width}, {self.n_valid} valid vertices, "
+                f"{present}/{N_LANDMARKS} landmarks, {image})")
+
     @property
     def shape(self) -> tuple[int, int]:
         """Grid size (H, W)."""

@@ -5,8 +5,9 @@ Formats:
 - Bosphorus ``.bnt`` depth scans (:func:`read_bnt`, :func:`write_bnt`);
 - Bosphorus ``.lm3`` landmark files (:func:`read_lm3`, :func:`write_lm3`), and
   landmarks as ``.csv`` or ``.json`` (:func:`read_landmarks`, :func:`write_landmarks`);
-- meshes and point clouds through trimesh (:func:`read_mesh`), and OBJ / PLY meshes
-  with a u,v map and vertex colours (:func:`write_mesh`).
+- meshes and point clouds through trimesh (:func:`read_mesh`), OBJ / PLY meshes
+  with a u,v map and vertex colours (:func:`write_mesh`), and an OBJ textured by an
+  image, with its MTL and PNG (:func:`write_textured_obj`).
 
 Landmarks are always a (22, 3) float64 array in Bosphorus order (see
 :mod:`tpscore.face.landmarks`) with NaN rows for the ones that are missing. Every reader
@@ -30,6 +31,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from .._validation import as_faces, as_points
+from .image import as_colour_image
 from .landmarks import LANDMARK_NAMES, N_LANDMARKS, as_landmarks, empty_landmarks, landmark_index
 
 __all__ = [
@@ -43,6 +45,8 @@ __all__ = [
     "write_landmarks",
     "read_mesh",
     "write_mesh",
+    "write_textured_obj",
+    "write_png",
     "read_image",
 ]
 
@@ -60,6 +64,17 @@ _BNT_LEN2 = struct.Struct("<I")
 
 # --------------------------------------------------------------------------- helpers
 
+def _current_umask() -> int:
+    # the umask can only be read by setting it; done once, at import, before any thread
+    # of tpscore's writes
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _current_umask()
+
+
 def _atomic_write(path, data: bytes) -> None:
     """Write `data` to `path` through a temporary file in the same folder, then rename.
 
@@ -74,6 +89,9 @@ def _atomic_write(path, data: bytes) -> None:
     try:
         with os.fdopen(handle, "wb") as fh:
             fh.write(data)
+        # mkstemp makes the file private (0600); a written result gets the permissions
+        # open() would have given it, so others can read a page or mesh as usual
+        os.chmod(tmp_name, 0o666 & ~_UMASK)
         os.replace(tmp_name, path)
     except BaseException:
         try:
@@ -145,6 +163,14 @@ def read_image(path) -> np.ndarray:
     return rgb
 
 
+def write_png(path, image) -> None:
+    """Write an (h, w, 3) uint8 RGB image as PNG (atomically)."""
+    picture = np.ascontiguousarray(as_colour_image(image))
+    buffer = _stdio.BytesIO()
+    Image.fromarray(picture, "RGB").save(buffer, format="PNG")
+    _atomic_write(path, buffer.getvalue())
+
+
 # --------------------------------------------------------------------------- .bnt
 
 # eq=False: element-wise array comparison has no single truth value.
@@ -194,6 +220,10 @@ class BntScan:
     def n_valid(self) -> int:
         """Number of valid points."""
         return int(np.count_nonzero(self.valid))
+
+    def __repr__(self) -> str:
+        image = f"image {self.image_name!r}" if self.image_name else "no image"
+        return f"BntScan({self.nrows}x{self.ncols}, {self.n_valid} valid points, {image})"
 
     def valid_points(self) -> np.ndarray:
         """The valid points, (n_valid, 3), in row-major pixel order."""
@@ -743,9 +773,11 @@ def write_mesh(path, vertices, faces, *, uv=None, vertex_colors=None) -> None:
     _atomic_write(path, data)
 
 
-def _obj_bytes(vertices, faces, uv, colors) -> bytes:
+def _obj_bytes(vertices, faces, uv, colors, header: tuple[str, ...] = ()) -> bytes:
     out = _stdio.StringIO()
     out.write("# written by tpscore; units mm\n")
+    for line in header:
+        out.write(line + "\n")
     # %.17g round-trips float64 exactly; np.savetxt formats the whole block in C.
     if colors is None:
         np.savetxt(out, vertices, fmt="v %.17g %.17g %.17g")
@@ -761,6 +793,59 @@ def _obj_bytes(vertices, faces, uv, colors) -> bytes:
         else:
             np.savetxt(out, one_based, fmt="f %d %d %d")
     return out.getvalue().encode("ascii")
+
+
+def write_textured_obj(path, vertices, faces, uv, image, *, material: str = "skin") -> tuple[Path, Path, Path]:
+    """Write a mesh textured by an image: ``NAME.obj``, ``NAME.mtl`` and ``NAME_texture.png``.
+
+    MeshLab, Blender, trimesh and most viewers show the mesh in the image's colours. The
+    image and the material are written first, the OBJ last (each atomically), so an OBJ
+    on disk always finds its material and image beside it.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        The ``.obj`` file; the ``.mtl`` and the ``_texture.png`` take its stem, in its
+        folder (the image's name differs from the stem so that a picture named like the
+        mesh, ``result.obj`` beside ``result.png``, does not overwrite the texture).
+    vertices : (n, 3) array-like, mm, finite
+    faces : (m, 3) integer array-like
+    uv : (n, 2) array-like
+        Each vertex's place in the image in tpscore's convention (u to the right, v
+        DOWN, in [0, 1], as :attr:`FaceGrid.uv <tpscore.face.grid.FaceGrid.uv>` and a
+        ``.bnt`` hold it). The OBJ stores ``1 - v``, since OBJ viewers put v = 0 at the
+        bottom of the image.
+    image : (h, w, 3) uint8
+        The texture, for example :attr:`FaceGrid.image <tpscore.face.grid.FaceGrid.image>`.
+    material : str
+        The material's name (letters, digits, ``_`` and ``-``).
+
+    Returns
+    -------
+    (obj_path, mtl_path, png_path)
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".obj":
+        raise ValueError(f"{str(path)!r}: write_textured_obj writes an .obj (with .mtl and .png beside it)")
+    if not isinstance(material, str) or not material or not all(c.isalnum() or c in "_-" for c in material):
+        raise ValueError(f"material must be a name of letters, digits, _ and -, got {material!r}")
+    vertices = as_points(vertices, "vertices")
+    faces = as_faces(np.asarray(faces).reshape(-1, 3) if np.size(faces) == 0 else faces, len(vertices))
+    uv = as_points(uv, "uv", dim=2)
+    if len(uv) != len(vertices):
+        raise ValueError(f"uv must have shape ({len(vertices)}, 2), got {uv.shape}")
+    picture = as_colour_image(image, "image")
+    mtl_path, png_path = path.with_suffix(".mtl"), path.with_name(f"{path.stem}_texture.png")
+    write_png(png_path, picture)
+    _atomic_write(mtl_path, (
+        "# written by tpscore\n"
+        f"newmtl {material}\n"
+        "Ka 1 1 1\nKd 1 1 1\nKs 0 0 0\nNs 1\nd 1\nillum 1\n"
+        f"map_Kd {png_path.name}\n").encode("utf-8"))
+    flipped = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])
+    _atomic_write(path, _obj_bytes(vertices, faces, flipped, None,
+                                   (f"mtllib {mtl_path.name}", f"usemtl {material}")))
+    return path, mtl_path, png_path
 
 
 def _ply_bytes(vertices, faces, uv, colors) -> bytes:
