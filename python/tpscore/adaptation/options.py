@@ -137,14 +137,16 @@ class AdaptOptions:
     scan_view: tuple | None = (0.0, 0.0, 1.0)
     outlier_threshold: float = 15.0
     held_out_landmarks: tuple = ()
-    markers: tuple | None = field(default=None, compare=False)
+    markers: tuple | None = field(default=None, compare=False, repr=False)
     alpha: float = 1.0
     beta: float = 1.0
     distance_threshold: float | None = None
-    vertex_weights: np.ndarray | None = field(default=None, compare=False)
+    vertex_weights: np.ndarray | None = field(default=None, compare=False, repr=False)
     stop_at_minimum: bool = True
     noise_warning_mm: float = 0.6
-    rigid_parts: tuple | None = field(default=None, compare=False)
+    rigid_parts: tuple | None = field(default=None, compare=False, repr=False)
+    # markers, vertex_weights and rigid_parts hold per-point or per-vertex arrays: they are
+    # left out of comparisons (arrays have no single truth value) and of the one-line repr.
 
     def __post_init__(self):
         optional = [name for name in ("initial_support", "min_support", "distance_threshold")
