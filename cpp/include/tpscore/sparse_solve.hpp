@@ -11,7 +11,7 @@
 
 namespace tpscore {
 
-struct DenseCholeskyKernels;
+struct SupernodeKernels;
 
 /// A sparse symmetric positive-definite matrix factorised as P A P^T = L D L^T
 /// (Eigen's SimplicialLDLT with an approximate-minimum-degree ordering P).
@@ -119,7 +119,7 @@ private:
     // Factorises supernode s from its entries and its children's updates; returns -1
     // or the column (in elimination order) of its first non-positive pivot.
     std::int64_t factor_supernode(std::int64_t s, const double* values,
-                                  const DenseCholeskyKernels& kernels);
+                                  const SupernodeKernels& kernels);
 
     std::int64_t n_;
     std::vector<std::int64_t> order_;           // elimination order: order_[k] = unknown
