@@ -21,6 +21,7 @@ from .expression import (
     ExpressionModel,
     MirroredMotion,
     MotionOptions,
+    PersonMismatchWarning,
     RigidAlignment,
     TextureOptions,
     TransferOptions,
@@ -129,6 +130,7 @@ __all__ = [
     "animate",
     "TransferResult",
     "transfer",
+    "PersonMismatchWarning",
     # submodules
     "datasets",
     "render",

@@ -23,7 +23,7 @@ from .. import render
 from ..expression import TransferOptions, align_rigid, transfer
 from ..face import io
 from ..face.average_face import afm_faces, build_average_face
-from ..face.grid import load_scan
+from ..face.grid import MAX_GRID_VERTICES, load_scan
 from ..spatial import MeshSurface
 from .adapt import add_adapt_parser, adapt_command
 from .demo import run_demo
@@ -74,8 +74,9 @@ def _grid_shape(text: str) -> tuple[int, int]:
         h, w = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise ValueError(f"--grid must look like 150x150, got {text!r}") from None
-    if not (8 <= h <= 4096 and 8 <= w <= 4096):
-        raise ValueError(f"--grid sizes must be between 8 and 4096, got {text!r}")
+    if h < 8 or w < 8 or h * w > MAX_GRID_VERTICES:
+        raise ValueError(f"--grid must have at least 8 rows and columns and at most {MAX_GRID_VERTICES:,} "
+                         f"vertices (1024x1024), got {text!r}")
     return h, w
 
 
@@ -161,8 +162,16 @@ def run_demo_command(args) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: the message and where to find the usage, not the
+    whole usage text (sub-commands inherit it)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="tpscore", description="Morph and animate 3D faces with TPS and RBFs.")
+    parser = _Parser(prog="tpscore", description="Morph and animate 3D faces with TPS and RBFs.")
     parser.add_argument("--traceback", action="store_true", help="show a full traceback on errors")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_transfer(sub)
@@ -193,5 +202,11 @@ def main(argv=None) -> int:
             if args.traceback:
                 raise
             print(f"tpscore: error: {exc}", file=sys.stderr)
+            return 2
+        except MemoryError as exc:
+            if args.traceback:
+                raise
+            print(f"tpscore: error: out of memory{': ' + str(exc) if str(exc) else ''} "
+                  "(a smaller --grid needs less)", file=sys.stderr)
             return 2
 
