@@ -110,8 +110,9 @@ def run_transfer(args) -> int:
                       f"({int(moving.sum())} vertices): rms {rms(errors[moving]):.2f} mm "
                       f"(the neutral target: {rms(neutral_errors[moving]):.2f} mm)")
     if args.png:
+        # every face in its grid's frame, frontal (a scan's own frame may show a profile)
         images = [render.render_grid(g.points, g.mask) for g in grids]
-        images.append(render.render_grid(result.vertices, result.mask))
+        images.append(render.render_grid(result.animation.frame_in_grid(result.magnitude), result.mask))
         titles = ["source neutral", "source expressive", "target neutral",
                   f"target {'+'.join(result.animation.labels)} m={args.magnitude:g}"]
         if errors is not None:
@@ -123,7 +124,7 @@ def run_transfer(args) -> int:
         progress.step(f"wrote {args.png}")
     if args.gif:
         ms = np.concatenate([np.linspace(0, args.magnitude, 8), np.linspace(args.magnitude, 0, 8)[1:]])
-        frames = [render.render_grid(result.animation.frame_in_scan(m), result.mask) for m in ms]
+        frames = [render.render_grid(result.animation.frame_in_grid(m), result.mask) for m in ms]
         render.save_gif(args.gif, frames, fps=12)
         progress.step(f"wrote {args.gif}")
     return 0
@@ -140,8 +141,12 @@ def _distance_to_truth(result, truth, target) -> tuple[np.ndarray, np.ndarray]:
     surface = MeshSurface(align.apply(mesh.vertices), mesh.faces)
     result_distances = np.full(result.mask.shape, np.nan)
     neutral_distances = np.full(result.mask.shape, np.nan)
-    result_distances[result.mask] = surface.closest_point(result.vertices[result.mask]).distances
-    neutral_distances[result.mask] = surface.closest_point(result.neutral[result.mask]).distances
+    # in the target grid's frame, where the truth was aligned (a scan resampled from
+    # another frame has its vertices in that frame)
+    animated = result.animation.frame_in_grid(result.magnitude)
+    neutral = result.animation.frame_in_grid(0.0)
+    result_distances[result.mask] = surface.closest_point(animated[result.mask]).distances
+    neutral_distances[result.mask] = surface.closest_point(neutral[result.mask]).distances
     return result_distances, neutral_distances
 
 

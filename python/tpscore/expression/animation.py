@@ -45,7 +45,10 @@ class Animation:
 
     def __post_init__(self):
         self._neutral = np.where(self.target.grid.mask[..., None], self.target.grid.points, np.nan)
-        self._inverse = self.target.transform.inverse()
+        self._to_grid = self.target.transform.inverse()
+        # a scan resampled from another frame or unit goes back there
+        scan_frame = self.target.grid.scan_frame
+        self._to_scan = self._to_grid if scan_frame is None else self._to_grid.then(scan_frame)
 
     def _weights(self, magnitude) -> np.ndarray:
         w = magnitude_weights(magnitude, self.labels)
@@ -66,9 +69,14 @@ class Animation:
         """(H, W, 3) animated target in the reference frame (NaN where the grid is invalid)."""
         return self._neutral + self.displacement(magnitude)
 
+    def frame_in_grid(self, magnitude=1.0) -> np.ndarray:
+        """(H, W, 3) animated target in the frame of the target grid (the scan's frame,
+        or the canonical frame the scan was resampled in, see :class:`FaceGrid`)."""
+        return self._to_grid.apply(self.frame(magnitude))
+
     def frame_in_scan(self, magnitude=1.0) -> np.ndarray:
         """(H, W, 3) animated target in the target scan's own frame."""
-        return self._inverse.apply(self.frame(magnitude))
+        return self._to_scan.apply(self.frame(magnitude))
 
     def sweep(self, magnitudes: Sequence[float]) -> list[np.ndarray]:
         return [self.frame(m) for m in magnitudes]

@@ -20,6 +20,7 @@ from ..face.average_face import AverageFace, load_average_face
 from ..face.grid import FaceGrid
 from ..face.landmarks import MIN_LANDMARKS, N_LANDMARKS
 from ..face.normalise import NormalisedFace, normalise_face
+from ..face.pose import check_landmarks
 from ..face.regions import region_boundary
 from .action_units import ActionUnitLibrary, default_library
 from .animation import Animation, animate, magnitude_weights
@@ -66,12 +67,16 @@ class TransferResult:
 
     def to_npz_dict(self) -> dict:
         """Arrays for ``--out result.npz`` (scan-frame arrays first, as scorers expect)."""
+        to_normalised = self.target.transform
+        scan_frame = self.target.grid.scan_frame
+        if scan_frame is not None:
+            to_normalised = scan_frame.inverse().then(to_normalised)
         return dict(
             vertices=self.vertices, neutral=self.neutral, mask=self.mask,
             vertices_normalised=self.vertices_normalised,
             neutral_normalised=self.neutral_normalised,
-            scan_to_normalised=self.target.transform.matrix,
-            uv=self.target.grid.uv, landmarks=self.target.transform.apply_inverse(self.target.landmarks),
+            scan_to_normalised=to_normalised.matrix,
+            uv=self.target.grid.uv, landmarks=to_normalised.apply_inverse(self.target.landmarks),
             action_units=np.array(self.animation.labels),
         )
 
@@ -183,10 +188,19 @@ def _naming(name: str):
 
 
 def _check_face(name: str, face: FaceGrid) -> None:
-    """Every face needs the landmarks of a landmark TPS and of the upper/lower split."""
+    """Every face needs the landmarks of a landmark TPS and of the upper/lower split,
+    landmarks that can be a face's, and the canonical pose and unit."""
     present = int(np.isfinite(face.landmarks).all(axis=1).sum())
     if present < MIN_LANDMARKS:
         raise ValueError(f"{name}: only {present} of the {N_LANDMARKS} landmarks are present; a transfer "
                          f"needs at least {MIN_LANDMARKS} (give the scan's landmark file)")
     with _naming(name):
         region_boundary(face.landmarks)
+    pose = check_landmarks(face.landmarks, f"{name}: the landmarks")
+    if pose is not None and pose.plausible and (
+            pose.mm_per_unit != 1.0 or not np.array_equal(pose.rotation, np.eye(3))):
+        # resample_scan brings scans into the canonical frame; this grid was built otherwise
+        raise ValueError(
+            f"{name}: the face {pose.describe()}; a transfer needs it frontal (looking toward +z, "
+            "+y up) and in millimetres. tpscore.load_scan and resample_scan bring a scan there "
+            "from its landmarks")

@@ -32,10 +32,12 @@ import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
 from .._validation import MAX_COORDINATE, as_array, as_path, as_positive
+from ..geometry import FrameTransform
 from .image import as_colour_image as _as_colour_image
 from .image import check_image_fits, sample_image
 from .io import BntScan, read_bnt, read_image, read_landmarks, read_mesh
 from .landmarks import LANDMARK_NAMES, N_LANDMARKS, as_landmarks, empty_landmarks
+from .pose import scan_pose
 
 __all__ = [
     "FaceGrid",
@@ -123,6 +125,10 @@ class FaceGrid:
         The scan's colour image at full resolution, which ``uv`` points into (None for
         a scan without one). It is shared, not copied, between grids made from one
         scan, and read-only.
+    scan_frame : FrameTransform or None
+        The map from the grid's frame back to the frame of the scan it was made from,
+        when :func:`resample_scan` brought the scan into the canonical frame (see
+        :mod:`tpscore.face.pose`); None when the two are the same.
     """
 
     points: np.ndarray
@@ -131,6 +137,7 @@ class FaceGrid:
     landmarks: np.ndarray
     landmark_vertices: np.ndarray
     image: np.ndarray | None = None
+    scan_frame: FrameTransform | None = None
 
     def __post_init__(self):
         mask = np.array(self.mask, dtype=bool)
@@ -164,6 +171,8 @@ class FaceGrid:
         self.landmarks, self.landmark_vertices = landmarks, index
         if self.image is not None:
             self.image = _as_colour_image(self.image)
+        if self.scan_frame is not None and not isinstance(self.scan_frame, FrameTransform):
+            raise ValueError(f"scan_frame must be a FrameTransform or None, got {type(self.scan_frame).__name__}")
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -250,7 +259,7 @@ class FaceGrid:
     def copy(self) -> "FaceGrid":
         """A deep copy."""
         return FaceGrid(self.points.copy(), self.mask.copy(), self.uv.copy(),
-                        self.landmarks.copy(), self.landmark_vertices.copy(), self.image)
+                        self.landmarks.copy(), self.landmark_vertices.copy(), self.image, self.scan_frame)
 
     def with_points(self, new_points) -> "FaceGrid":
         """The same grid (mask, u,v map, landmark vertices) with moved vertices.
@@ -279,7 +288,7 @@ class FaceGrid:
         present = self.landmark_vertices >= 0
         landmarks[present] = points.reshape(-1, 3)[self.landmark_vertices[present]]
         return FaceGrid(points, self.mask.copy(), self.uv.copy(), landmarks, self.landmark_vertices.copy(),
-                        self.image)
+                        self.image, self.scan_frame)
 
     def with_landmarks(self, landmarks) -> "FaceGrid":
         """The same grid with `landmarks` (22, 3; NaN rows missing) snapped to it.
@@ -288,7 +297,8 @@ class FaceGrid:
         :func:`resample_scan` for the warning given when that vertex is far.
         """
         snapped, index = _snap_landmarks(self.vertices, self.mask.reshape(-1), landmarks)
-        return FaceGrid(self.points.copy(), self.mask.copy(), self.uv.copy(), snapped, index, self.image)
+        return FaceGrid(self.points.copy(), self.mask.copy(), self.uv.copy(), snapped, index, self.image,
+                        self.scan_frame)
 
 
 # --------------------------------------------------------------------------- resampling
@@ -318,6 +328,12 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
     Delaunay triangles whose longest edge exceeds ``max(max_gap_mm, 3 * median
     Delaunay edge)`` are dropped. Gaps wider than `max_gap_mm`, and everything outside the
     data, stay invalid. ``max_gap_mm=0`` bridges nothing beyond the sampling itself.
+
+    Pose and unit: a scan whose landmarks show another frame (its axes swapped, as in a
+    profile view or a y-forward, z-up scanner frame) or unit (centimetres, metres) is
+    first brought to the canonical frame, looking toward +z with +y up, in millimetres
+    (:func:`tpscore.face.pose.scan_pose`); the grid's ``scan_frame`` maps back. A scan
+    within 45 degrees of frontal and in millimetres is resampled as it is.
 
     Landmarks: each finite landmark is snapped to the nearest valid grid vertex
     (3D distance); missing (NaN) landmarks stay missing. A landmark farther than
@@ -356,12 +372,32 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
     grid, valid, source_uv, cloud, cloud_uv = _split_input(scan_or_points, uv)
     landmarks = empty_landmarks() if landmarks is None else as_landmarks(landmarks)
 
+    # Every step from here on reads depth along z and works in millimetres. A scan in
+    # another frame (axes swapped, a profile view) or unit is brought into the canonical
+    # one, without rounding its coordinates; the grid keeps the way back.
+    pose = scan_pose(landmarks)
+    scan_frame = None
+    if pose is not None and not pose.canonical:
+        landmarks = pose.to_canonical(landmarks)
+        if grid is not None:
+            grid = pose.to_canonical(grid)
+        else:
+            cloud = pose.to_canonical(cloud)
+        scan_frame = pose.transform.inverse()
+
     lattice = None
     if grid is not None:
         lattice = _fit_lattice(grid, valid)
         if lattice is None:
             cloud = grid[valid]
             cloud_uv = None if source_uv is None else source_uv[valid]
+            # a lattice whose rows and columns do not run along y and x (a depth image
+            # turned into the canonical frame) is still one
+            detected = _cloud_to_lattice(cloud, cloud_uv)
+            if detected is not None:
+                grid, valid, source_uv, lattice = detected
+            else:
+                grid = None
     else:
         detected = _cloud_to_lattice(cloud, cloud_uv)
         if detected is not None:
@@ -405,7 +441,7 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
     points[..., 2] = z
     points[~mask] = np.nan
     snapped, index = _snap_landmarks(points.reshape(-1, 3), mask.reshape(-1), landmarks)
-    return FaceGrid(points, mask, grid_uv, snapped, index)
+    return FaceGrid(points, mask, grid_uv, snapped, index, scan_frame=scan_frame)
 
 
 def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
