@@ -32,7 +32,7 @@ from importlib import resources
 
 import numpy as np
 
-from ..geometry import FrameTransform, similarity_transform
+from ..geometry import FrameTransform
 from .io import read_npz
 from .landmarks import LANDMARK_NAMES, MIRROR_LANDMARK, as_landmarks
 
@@ -105,11 +105,6 @@ def _axis_rotations() -> np.ndarray:
             if np.linalg.det(matrix) > 0:
                 rotations.append(matrix)
     return np.array(rotations)
-
-
-def _size(points: np.ndarray) -> float:
-    centred = points - points.mean(axis=0)
-    return float(np.sqrt((centred ** 2).sum(axis=1).mean()))
 
 
 @dataclass(frozen=True)
@@ -221,19 +216,29 @@ def scan_pose(landmarks) -> ScanPose | None:
     both = np.isfinite(lm).all(axis=1)
     if both.sum() < _MIN_POSE_LANDMARKS:
         return None
-    try:
-        fit = similarity_transform(lm, reference)
-        mirror = np.diag([-1.0, 1.0, 1.0])
-        mirrored_fit = similarity_transform(lm @ mirror, reference)
-    except ValueError:  # all on one line
-        return None
-    spread = _size(reference[both])
-    residuals = np.linalg.norm(fit.apply(lm) - reference, axis=1)
-    mirrored_residuals = np.linalg.norm(mirrored_fit.apply(lm @ mirror) - reference, axis=1)
-    residual = float(np.sqrt(np.mean(residuals[both] ** 2)) / spread)
-    mirrored_residual = float(np.sqrt(np.mean(mirrored_residuals[both] ** 2)) / spread)
-    scale = fit.scale
-    rotation = fit.matrix[:3, :3] / scale
+    # Umeyama's least-squares similarity, once for the face and once for its mirror
+    # image: mirroring the face flips one singular vector, so one SVD gives both fits'
+    # residuals (resample_scan runs this for every scan; two full fits cost more than
+    # a tenth of the resampling).
+    source, target = lm[both], reference[both]
+    source_mean, target_mean = source.mean(axis=0), target.mean(axis=0)
+    source_centred, target_centred = source - source_mean, target - target_mean
+    source_variance = float((source_centred ** 2).sum())
+    target_variance = float((target_centred ** 2).sum())
+    u, singular, vt = np.linalg.svd(target_centred.T @ source_centred)
+    if source_variance == 0.0 or singular[1] <= 1e-9 * singular[0]:
+        return None  # all on one line: no rotation to speak of
+    sign = 1.0 if np.linalg.det(u) * np.linalg.det(vt) > 0 else -1.0
+    proper = singular[0] + singular[1] + sign * singular[2]
+    mirrored = singular[0] + singular[1] - sign * singular[2]
+    spread = np.sqrt(target_variance / len(target))
+    residual = float(np.sqrt(max(target_variance - proper ** 2 / source_variance, 0.0) / len(target)) / spread)
+    mirrored_residual = float(np.sqrt(max(target_variance - mirrored ** 2 / source_variance, 0.0)
+                                      / len(target)) / spread)
+    rotation = u @ np.diag([1.0, 1.0, sign]) @ vt
+    scale = proper / source_variance
+    fitted = scale * (lm - source_mean) @ rotation.T + target_mean
+    residuals = np.linalg.norm(fitted - reference, axis=1)
     candidates = _axis_rotations()
     nearest = candidates[int(np.argmax(np.einsum("kij,ij->k", candidates, rotation)))]
     # the unit: the power of ten that brings the face's size within range of the reference's
@@ -241,10 +246,9 @@ def scan_pose(landmarks) -> ScanPose | None:
     for unit in UNITS_MM:
         if _SIZE_RANGE[0] <= scale / unit <= _SIZE_RANGE[1]:
             mm_per_unit = unit
-    fitted = fit.apply(lm)
     swapped = tuple((LANDMARK_NAMES[i], LANDMARK_NAMES[j]) for i, j in _PAIRS
                     if both[i] and both[j] and fitted[i, 0] < fitted[j, 0])
-    return ScanPose(nearest, mm_per_unit, rotation, scale, residual, mirrored_residual, residuals, swapped)
+    return ScanPose(nearest, mm_per_unit, rotation, float(scale), residual, mirrored_residual, residuals, swapped)
 
 
 def check_landmarks(landmarks, name: str = "landmarks") -> ScanPose | None:
