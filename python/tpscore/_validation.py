@@ -139,29 +139,29 @@ def as_real(value, name: str, *, low: float = -math.inf, high: float = math.inf)
     is a caller's parsing slip, and float("nan") or float("1e999") would slip through.
     """
     if isinstance(value, (str, bytes, bool, np.bool_)) or isinstance(value, (complex, np.complexfloating)):
-        raise ValueError(f"{name} must be a real number, got {value!r}")
+        raise ValueError(f"{name} must be a real number, got {value!r:.80}")
     try:
         number = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a real number, got {value!r}") from None
+        raise ValueError(f"{name} must be a real number, got {value!r:.80}") from None
     if not math.isfinite(number):
-        raise ValueError(f"{name} must be finite, got {value!r}")
+        raise ValueError(f"{name} must be finite, got {value!r:.80}")
     if not low <= number <= high:
-        raise ValueError(f"{name} must lie in [{low:g}, {high:g}], got {value!r}")
+        raise ValueError(f"{name} must lie in [{low:g}, {high:g}], got {value!r:.80}")
     return number
 
 
 def as_positive(value, name: str, *, allow_zero: bool = False) -> float:
     """A finite scalar > 0 (or >= 0 with allow_zero)."""
     if isinstance(value, (str, bytes, bool, np.bool_)) or isinstance(value, (complex, np.complexfloating)):
-        raise ValueError(f"{name} must be a number, got {value!r}")
+        raise ValueError(f"{name} must be a number, got {value!r:.80}")
     try:
         number = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
+        raise ValueError(f"{name} must be a number, got {value!r:.80}") from None
     if not math.isfinite(number) or number < 0 or (number == 0 and not allow_zero):
         bound = ">= 0" if allow_zero else "> 0"
-        raise ValueError(f"{name} must be finite and {bound}, got {value!r}")
+        raise ValueError(f"{name} must be finite and {bound}, got {value!r:.80}")
     return number
 
 
@@ -169,7 +169,7 @@ def as_count(value, name: str, *, least: int = 1, most: int = MAX_C_INT) -> int:
     """A whole number in [least, most]; ValueError naming `name` otherwise (bools,
     floats such as 2.0 and strings are refused)."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
-        raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+        raise ValueError(f"{name} must be an integer >= {least}, got {value!r:.80}")
     count = int(value)
     if count < least:
         raise ValueError(f"{name} must be >= {least}, got {count}")
@@ -184,7 +184,7 @@ def as_path(path, name: str = "path") -> str:
     if isinstance(path, bytes):
         path = os.fsdecode(path)
     if not isinstance(path, (str, os.PathLike)):
-        raise ValueError(f"{name} must be a file path (str or os.PathLike), got {path!r}")
+        raise ValueError(f"{name} must be a file path (str or os.PathLike), got {path!r:.80}")
     text = os.fspath(path)
     if isinstance(text, bytes):
         text = os.fsdecode(text)
