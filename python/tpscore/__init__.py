@@ -22,6 +22,7 @@ from .expression import (
     ExpressionModel,
     MirroredMotion,
     MotionOptions,
+    PersonMismatchWarning,
     RigidAlignment,
     TextureOptions,
     TransferOptions,
@@ -73,6 +74,7 @@ from .mesh import (
 )
 from .face.normalise import FrameTransform, NormalisedFace, normalise_face, similarity_transform, thesis_affine_transform
 from .face.grid import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, resample_scan
+from .face.pose import ImplausibleLandmarksWarning, MirroredLandmarksError, ScanPose, scan_pose
 from .rbf import RBF, RBF_KERNELS, TPS
 from .sparse import PatternCholesky, SparseCholesky
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
@@ -106,6 +108,10 @@ __all__ = [
     "GridMesh",
     "LandmarkSnapWarning",
     "resample_scan",
+    "ScanPose",
+    "scan_pose",
+    "MirroredLandmarksError",
+    "ImplausibleLandmarksWarning",
     "load_scan",
     # expression transfer
     "ActionUnit",
@@ -136,6 +142,7 @@ __all__ = [
     "animate",
     "TransferResult",
     "transfer",
+    "PersonMismatchWarning",
     # submodules
     "datasets",
     "render",

@@ -15,11 +15,13 @@ Pillow writes PNG and animated GIF files and draws titles and colour bars.
 """
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
 
 import numpy as np
 from PIL import Image, ImageDraw
 
+from ._files import atomic_write
 from ._validation import as_faces, as_points
 from .face.image import as_colour_image, sample_image
 from .raster import rasterise
@@ -574,8 +576,10 @@ def side_by_side(images, titles=None, *, title_height: int = 24, gap: int = 6,
 
 
 def save_png(path, image) -> None:
-    """Write an (H, W, 3) uint8 picture as PNG."""
-    _to_pil(image).save(path, format="PNG")
+    """Write an (H, W, 3) uint8 picture as PNG (atomically: all of it or nothing)."""
+    buffer = io.BytesIO()
+    _to_pil(image).save(buffer, format="PNG")
+    atomic_write(path, buffer.getvalue())
 
 
 def save_gif(path, frames, fps: float = 12.0) -> None:
@@ -593,5 +597,7 @@ def save_gif(path, frames, fps: float = 12.0) -> None:
         raise ValueError(f"fps must be finite and > 0, got {fps!r}")
 
     paletted = [p.convert("P", palette=Image.Palette.ADAPTIVE, colors=256) for p in pictures]
-    paletted[0].save(path, format="GIF", save_all=True, append_images=paletted[1:],
+    buffer = io.BytesIO()
+    paletted[0].save(buffer, format="GIF", save_all=True, append_images=paletted[1:],
                      duration=int(round(1000.0 / rate)), loop=0, optimize=False)
+    atomic_write(path, buffer.getvalue())

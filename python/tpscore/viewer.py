@@ -24,7 +24,7 @@ from PIL import Image
 from ._validation import as_faces, as_points
 from ._version import __version__
 from .face.image import as_colour_image
-from .face.io import _atomic_write
+from ._files import atomic_write
 from .mesh import vertex_normals
 
 __all__ = ["page_html", "write_html", "write_result_html"]
@@ -155,7 +155,7 @@ def write_html(path, neutral, field, faces, **kwargs) -> None:
     """Write :func:`page_html` to `path` (atomically); keyword arguments as there."""
     if Path(path).suffix.lower() not in (".html", ".htm"):
         raise ValueError(f"{str(path)!r}: a result page is an .html file")
-    _atomic_write(path, page_html(neutral, field, faces, **kwargs).encode("utf-8"))
+    atomic_write(path, page_html(neutral, field, faces, **kwargs).encode("utf-8"))
 
 
 def write_result_html(path, result, *, title: str | None = None) -> None:

@@ -25,7 +25,7 @@ from .._version import __version__
 from ..expression import TransferOptions, align_rigid, transfer
 from ..face import io
 from ..face.average_face import afm_faces, build_average_face
-from ..face.grid import load_scan
+from ..face.grid import MAX_GRID_VERTICES, load_scan
 from ..spatial import MeshSurface
 from .adapt import add_adapt_parser, adapt_command
 from .demo import run_demo
@@ -83,8 +83,9 @@ def _grid_shape(text: str) -> tuple[int, int]:
         h, w = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise ValueError(f"--grid must look like 150x150, got {text!r}") from None
-    if not (8 <= h <= 4096 and 8 <= w <= 4096):
-        raise ValueError(f"--grid sizes must be between 8 and 4096, got {text!r}")
+    if h < 8 or w < 8 or h * w > MAX_GRID_VERTICES:
+        raise ValueError(f"--grid must have at least 8 rows and columns and at most {MAX_GRID_VERTICES:,} "
+                         f"vertices (1024x1024), got {text!r}")
     return h, w
 
 
@@ -141,8 +142,12 @@ def _distance_to_truth(result, truth, target) -> tuple[np.ndarray, np.ndarray]:
     surface = MeshSurface(align.apply(mesh.vertices), mesh.faces)
     result_distances = np.full(result.mask.shape, np.nan)
     neutral_distances = np.full(result.mask.shape, np.nan)
-    result_distances[result.mask] = surface.closest_point(result.vertices[result.mask]).distances
-    neutral_distances[result.mask] = surface.closest_point(result.neutral[result.mask]).distances
+    # in the target grid's frame, where the truth was aligned (a scan resampled from
+    # another frame has its vertices in that frame)
+    animated = result.animation.frame_in_grid(result.magnitude)
+    neutral = result.animation.frame_in_grid(0.0)
+    result_distances[result.mask] = surface.closest_point(animated[result.mask]).distances
+    neutral_distances[result.mask] = surface.closest_point(neutral[result.mask]).distances
     return result_distances, neutral_distances
 
 
@@ -163,8 +168,16 @@ def run_demo_command(args) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: the message and where to find the usage, not the
+    whole usage text (sub-commands inherit it)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="tpscore", description="Morph and animate 3D faces with TPS and RBFs.")
+    parser = _Parser(prog="tpscore", description="Morph and animate 3D faces with TPS and RBFs.")
     parser.add_argument("--version", action="version", version=f"tpscore {__version__}")
     parser.add_argument("--traceback", action="store_true", help="show a full traceback on errors")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -197,5 +210,11 @@ def main(argv=None) -> int:
             if args.traceback:
                 raise
             print(f"tpscore: error: {exc}", file=sys.stderr)
+            return 2
+        except MemoryError as exc:
+            if args.traceback:
+                raise
+            print(f"tpscore: error: out of memory{': ' + str(exc) if str(exc) else ''} "
+                  "(a smaller --grid needs less)", file=sys.stderr)
             return 2
 

@@ -10,16 +10,20 @@ motion carried onto the target as one field per AU (:mod:`tpscore.expression.ani
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Mapping
 
 import numpy as np
 
-from ..face.average_face import load_average_face
+from ..face.average_face import AverageFace, load_average_face
 from ..face.grid import FaceGrid
+from ..face.landmarks import MIN_LANDMARKS, N_LANDMARKS
 from ..face.normalise import NormalisedFace, normalise_face
+from ..face.pose import check_landmarks
+from ..face.regions import region_boundary
 from .action_units import ActionUnitLibrary, default_library
-from .animation import Animation, animate
+from .animation import Animation, animate, magnitude_weights
 from .modelling import ExpressionModel, align_expressive, model_expression
 from .options import TransferOptions
 
@@ -117,12 +121,16 @@ class TransferResult:
 
     def to_npz_dict(self) -> dict:
         """Arrays for ``--out result.npz`` (scan-frame arrays first, as scorers expect)."""
+        to_normalised = self.target.transform
+        scan_frame = self.target.grid.scan_frame
+        if scan_frame is not None:
+            to_normalised = scan_frame.inverse().then(to_normalised)
         return dict(
             vertices=self.vertices, neutral=self.neutral, mask=self.mask,
             vertices_normalised=self.vertices_normalised,
             neutral_normalised=self.neutral_normalised,
-            scan_to_normalised=self.target.transform.matrix,
-            uv=self.target.grid.uv, landmarks=self.target.transform.apply_inverse(self.target.landmarks),
+            scan_to_normalised=to_normalised.matrix,
+            uv=self.target.grid.uv, landmarks=to_normalised.apply_inverse(self.target.landmarks),
             action_units=np.array(self.animation.labels),
         )
 
@@ -142,7 +150,9 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
         What to transfer: ``"12"``, ``"12L"``, ``"1,4,15"``, ``"sadness"``,
         ``{"12": 0.5}`` (see :meth:`ActionUnitLibrary.parse`).
     magnitude : float or mapping
-        m in [0, 1] (values outside warn), or a weight per AU label.
+        m in [0, 1], or a weight per AU label; finite and within [-2, 2]
+        (:data:`~tpscore.expression.action_units.MAX_WEIGHT`); outside [0, 1] it
+        extrapolates the expression, with a warning.
     reference : AverageFace, optional
         The reference face (default: the one shipped with tpscore).
     library : ActionUnitLibrary, optional
@@ -157,9 +167,32 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
     -------
     TransferResult
         With ``timings``, the seconds each stage took.
+
+    Raises
+    ------
+    ValueError
+        An argument of the wrong type or out of range (naming it), or a face whose
+        landmarks do not allow a step (naming the face: ``source_neutral``,
+        ``source_expressive`` or ``target``).
     """
     clock = time.perf_counter()
     timings = {}
+    faces = {"source_neutral": source_neutral, "source_expressive": source_expressive, "target": target}
+    for name, face in faces.items():
+        if not isinstance(face, FaceGrid):
+            raise ValueError(f"{name} must be a FaceGrid (read a scan with tpscore.load_scan), "
+                             f"got {type(face).__name__} {face!r:.60}")
+    if not isinstance(options, TransferOptions):
+        raise ValueError(f"options must be a TransferOptions (e.g. TransferOptions.published()), "
+                         f"got {type(options).__name__} {options!r:.60}")
+    if reference is not None and not isinstance(reference, AverageFace):
+        raise ValueError(f"reference must be an AverageFace, got {type(reference).__name__}")
+    if library is not None and not isinstance(library, ActionUnitLibrary):
+        raise ValueError(f"library must be an ActionUnitLibrary, got {type(library).__name__}")
+    # checked before the work, so a bad magnitude fails here and not at .vertices
+    magnitude_weights(magnitude)
+    for name, face in faces.items():
+        _check_face(name, face)
 
     def lap(stage):
         nonlocal clock
@@ -174,14 +207,17 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
     lap("setup")
     # the published method normalises every scan on its own landmarks by the affine map
     normalisation = "affine" if options.method == "published" else "similarity"
-    neutral = normalise_face(source_neutral, reference_face.landmarks, normalisation)
-    target_face = normalise_face(target, reference_face.landmarks, normalisation)
+    with _naming("source_neutral"):
+        neutral = normalise_face(source_neutral, reference_face.landmarks, normalisation)
+    with _naming("target"):
+        target_face = normalise_face(target, reference_face.landmarks, normalisation)
     lap("normalise")
-    if options.method == "published":
-        expressive = normalise_face(source_expressive, reference_face.landmarks, normalisation)
-    else:
-        expressive = align_expressive(neutral, source_neutral, source_expressive,
-                                      [a.action_unit.region for a in activations])
+    with _naming("source_expressive"):
+        if options.method == "published":
+            expressive = normalise_face(source_expressive, reference_face.landmarks, normalisation)
+        else:
+            expressive = align_expressive(neutral, source_neutral, source_expressive,
+                                          [a.action_unit.region for a in activations])
     lap("align")
     model = model_expression(neutral, expressive, activations, reference_face, options)
     lap("model")
@@ -191,4 +227,40 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
         timings["model"] -= model.texture.seconds
     animation = animate(model, target_face)
     lap("animate")
+    magnitude_weights(magnitude, animation.labels)  # a mapping's labels, now that they are known
     return TransferResult(animation, magnitude, model, timings)
+
+
+@contextmanager
+def _naming(name: str):
+    """Prefix the argument's name to a ValueError raised inside: a stage that works on
+    one scan then says which of the three it was."""
+    try:
+        yield
+    except ValueError as exc:
+        if str(exc).startswith(name):
+            raise
+        try:
+            named = type(exc)(f"{name}: {exc}")
+        except TypeError:  # a subclass whose constructor takes other arguments
+            named = ValueError(f"{name}: {exc}")
+        raise named from None
+
+
+def _check_face(name: str, face: FaceGrid) -> None:
+    """Every face needs the landmarks of a landmark TPS and of the upper/lower split,
+    landmarks that can be a face's, and the canonical pose and unit."""
+    present = int(np.isfinite(face.landmarks).all(axis=1).sum())
+    if present < MIN_LANDMARKS:
+        raise ValueError(f"{name}: only {present} of the {N_LANDMARKS} landmarks are present; a transfer "
+                         f"needs at least {MIN_LANDMARKS} (give the scan's landmark file)")
+    with _naming(name):
+        region_boundary(face.landmarks)
+    pose = check_landmarks(face.landmarks, f"{name}: the landmarks")
+    if pose is not None and pose.plausible and (
+            pose.mm_per_unit != 1.0 or not np.array_equal(pose.rotation, np.eye(3))):
+        # resample_scan brings scans into the canonical frame; this grid was built otherwise
+        raise ValueError(
+            f"{name}: the face {pose.describe()}; a transfer needs it frontal (looking toward +z, "
+            "+y up) and in millimetres. tpscore.load_scan and resample_scan bring a scan there "
+            "from its landmarks")
