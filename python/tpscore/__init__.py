@@ -65,6 +65,7 @@ from .face.grid import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, resam
 from .rbf import RBF, RBF_KERNELS, TPS
 from .sparse import PatternCholesky, SparseCholesky
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
+from . import batch  # after the methods it runs in batches
 
 try:
     __version__ = _metadata.version("tpscore")
@@ -130,6 +131,7 @@ __all__ = [
     "TransferResult",
     "transfer",
     # submodules
+    "batch",
     "datasets",
     "render",
     # compactly supported RBF
