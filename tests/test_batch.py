@@ -288,6 +288,19 @@ def test_a_corrupted_scan_fails_only_its_jobs(damaged_scans, client, gt_faces, t
     assert outputs == ["bs000_LFAU_12_0__bs002.npz"]
 
 
+def test_a_scores_only_job_is_resumed_from_its_record(scans, tmp_path):
+    job = batch.transfer_jobs(scans, pairs="next-1", grid=GRID)[0]
+    job = TransferJob(**{**job.__dict__, "save": False})
+    # no sidecar triangles: with truth, the job is scored against the target's own scan
+    record = batch.execute(job, WorkSettings(str(tmp_path), truth=True))
+    assert record["status"] == "done" and record["output"] == "" and not list(tmp_path.glob("*.npz"))
+    assert record["score_source"] == "scan" and 0.0 < record["residual_ratio"] < 1.0
+    skipped, to_run = batch.plan([job], tmp_path)
+    assert [r["name"] for r in skipped] == [job.name] and to_run == []
+    kept = TransferJob(**{**job.__dict__, "save": True})  # now asked for its output: run again
+    assert batch.plan([kept], tmp_path)[1] == [kept]
+
+
 class _KillAWorkerMidJob(Progress):
     """At the first finished job, kills a worker process that is running another one."""
 

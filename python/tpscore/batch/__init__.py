@@ -19,10 +19,10 @@ from __future__ import annotations
 from .jobs import AdaptJob, Job, TransferJob, adapt_jobs, code_label, read_manifest, scan_layout, transfer_jobs
 from .progress import Progress
 from .results import STATUSES, BatchReport, read_table, write_table
-from .driver import plan, run
+from .driver import local_cluster, plan, run
 from .scores import score_with_scan, score_with_sidecars
 from .work import WorkSettings, execute
 
-__all__ = ["run", "plan", "execute", "WorkSettings", "Job", "TransferJob", "AdaptJob", "transfer_jobs",
+__all__ = ["run", "plan", "local_cluster", "execute", "WorkSettings", "Job", "TransferJob", "AdaptJob", "transfer_jobs",
            "adapt_jobs", "read_manifest", "scan_layout", "code_label", "BatchReport", "STATUSES",
            "read_table", "write_table", "Progress", "score_with_sidecars", "score_with_scan"]

@@ -90,9 +90,11 @@ def _stem(path: str) -> str:
 
 
 class Job:
-    """What the engine needs of a job; :class:`TransferJob` and :class:`AdaptJob` are the
-    kinds tpscore has. A subclass may add fields and override the one method that
-    calls the library (``transfer`` or ``adapt``): the engine runs any of them.
+    """What the engine needs of a job. :class:`TransferJob` and :class:`AdaptJob` are
+    the kinds tpscore has; a subclass of either may add fields and wrap the one method
+    that calls the library (``transfer``, ``adapt``), and a new kind is a frozen
+    dataclass with a ``name`` that implements :meth:`columns` and :meth:`run`. The
+    engine runs any of them (a worker must be able to unpickle it).
 
     Attributes
     ----------
@@ -100,10 +102,13 @@ class Job:
         Unique within a batch; the stem of the output file and of the job's record.
     kind : str
         ``"transfer"`` or ``"adapt"``.
+    save : bool
+        Whether the job writes an output file (else its record is its whole result).
     """
 
     kind: ClassVar[str] = ""
     suffix: ClassVar[str] = ""
+    save = True
 
     @property
     def output_name(self) -> str:
@@ -157,6 +162,9 @@ class TransferJob(Job):
         The target's own scan of the expression. With ``_gt.npz`` sidecars beside it
         and beside the target, the job is scored exactly; without, against the scan's
         surface when the batch asks for it.
+    save : bool
+        Write the output. False scores only: the record is all the job leaves (an
+        evaluation over thousands of pairs need not keep a megabyte per pair).
 
     The output holds ``TransferResult.to_npz_dict()``: ``vertices``, ``neutral`` and
     ``mask`` in the target scan's frame, and more.
@@ -174,6 +182,7 @@ class TransferJob(Job):
     source_expressive_landmarks: str | None = None
     target_landmarks: str | None = None
     truth: str | None = None
+    save: bool = True
 
     kind: ClassVar[str] = "transfer"
     suffix: ClassVar[str] = ".npz"
@@ -218,10 +227,13 @@ class TransferJob(Job):
         arrays = result.to_npz_dict()
         row = dict(stage_seconds=dict(result.timings))
         row.update(context.score_transfer(self, arrays, grids[2]))
-        io.write_npz(context.output_path(self), **arrays)
+        if self.save:
+            io.write_npz(context.output_path(self), **arrays)
         return row
 
     def output_complete(self, path: Path, record: dict) -> bool:
+        if not self.save:
+            return True  # the record is the whole result
         if not super().output_complete(path, record):
             return False
         try:  # the zip's directory is at its end: a cut-off file has none
@@ -258,6 +270,8 @@ class AdaptJob(Job):
         Default: the landmark file beside the scan.
     options : mapping
         Keyword arguments of :func:`tpscore.adapt` (``levels``, ``refinement``, ...).
+    save : bool
+        Write the fitted mesh (False: score only, as in :class:`TransferJob`).
 
     With a ``_gt.npz`` sidecar beside the scan whose mesh is the template's (the same
     vertices), the job is scored: the per-vertex RMS (mm) over the template vertices
@@ -270,6 +284,7 @@ class AdaptJob(Job):
     template_landmarks: str
     scan_landmarks: str | None = None
     options: tuple = ()
+    save: bool = True
 
     kind: ClassVar[str] = "adapt"
     suffix: ClassVar[str] = ".obj"
@@ -313,8 +328,12 @@ class AdaptJob(Job):
                 row.update(rms_mm=adaptation_rms(result.vertices, sidecar, near), score_source="sidecar")
             except ValueError:
                 pass  # a sidecar of another mesh than the template's: nothing to score against
-        io.write_mesh(context.output_path(self), result.vertices, template_faces)
+        if self.save:
+            io.write_mesh(context.output_path(self), result.vertices, template_faces)
         return row
+
+    def output_complete(self, path: Path, record: dict) -> bool:
+        return True if not self.save else super().output_complete(path, record)
 
 
 # --------------------------------------------------------------------------- the Bosphorus layout

@@ -19,11 +19,11 @@ __all__ = ["BatchReport", "STATUSES", "write_table", "read_table"]
 #: or not run (the batch was interrupted first).
 STATUSES = ("done", "failed", "skipped", "not run")
 
-_FIRST = ("name", "kind", "status", "error", "seconds", "worker", "action_units", "magnitude", "method",
+_FIRST = ("name", "kind", "status", "error", "seconds", "cpu_seconds", "worker", "action_units", "magnitude", "method",
           "source_neutral", "source_expressive", "target", "truth", "scan", "template", "options",
           *SCORE_COLUMNS, "best_level")
 _LAST = ("load_seconds", "loads", "stage_seconds", "warnings", "output", "output_bytes", "started", "host",
-         "spec_hash")
+         "tpscore_version", "spec_hash")
 
 
 def _columns(rows) -> list[str]:

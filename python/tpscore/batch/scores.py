@@ -191,7 +191,9 @@ def score_with_sidecars(vertices, neutral, mask, neutral_sidecar, expressive_sid
         ``residual_ratio``, ``rms_mm``, ``noop_rms_mm``, ``leak_mm`` and
         ``pred_missing`` (usable vertices the prediction left NaN, not scored), plus
         ``p95_mm``, ``leak_oracle_mm`` (the leak of the truth itself: the neutral
-        grid's noise), ``n_active``, ``n_valid`` and ``n_far`` (neutral vertices more
+        grid's noise), ``gt_disp_rms_mm`` (the true motion where it moves),
+        ``neutral_offsurface_rms_mm`` (the neutral grid's distance to the clean mesh),
+        ``n_active``, ``n_valid``, ``n_masked_out`` and ``n_far`` (neutral vertices more
         than 3 mm off the clean mesh, left out).
     """
     predicted = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
@@ -214,7 +216,8 @@ def score_with_sidecars(vertices, neutral, mask, neutral_sidecar, expressive_sid
     g, c, distance = _ground_truth(n, *sidecars, faces)
     near = distance <= MAX_DISTANCE_MM
     n, p, g, c = n[near], p[near], g[near], c[near]
-    active = np.linalg.norm(g - c, axis=1) > ACTIVE_MM
+    displacement = np.linalg.norm(g - c, axis=1)
+    active = displacement > ACTIVE_MM
     error = np.linalg.norm(p - g, axis=1)
     scores = dict(
         rms_mm=_rms(error[active]),
@@ -223,7 +226,10 @@ def score_with_sidecars(vertices, neutral, mask, neutral_sidecar, expressive_sid
         pred_missing=int((usable & ~valid).sum()),
         p95_mm=float(np.percentile(error[active], 95)) if active.any() else math.nan,
         leak_oracle_mm=_rms(np.linalg.norm(g - n, axis=1)[~active]),
+        gt_disp_rms_mm=_rms(displacement[active]),
+        neutral_offsurface_rms_mm=_rms(distance[near]),
         n_active=int(active.sum()), n_valid=int(near.sum()), n_far=int((~near).sum()),
+        n_masked_out=int((~usable).sum()),
     )
     scores["residual_ratio"] = scores["rms_mm"] / scores["noop_rms_mm"] if scores["noop_rms_mm"] > 0 else math.nan
     return scores

@@ -250,6 +250,12 @@ def _worker_name() -> str:
     return str(worker.name)
 
 
+def _version() -> str:
+    import tpscore  # the package's own __init__ sets it, after this module is imported
+
+    return tpscore.__version__
+
+
 def _set_kernel_threads(settings: WorkSettings) -> None:
     if os.environ.get("TPSCORE_NUM_THREADS"):
         return
@@ -287,6 +293,7 @@ def execute(job, settings: WorkSettings) -> dict:
     output = context.output_path(job)
     started = time.time()
     clock = time.perf_counter()
+    cpu = time.process_time()
     row = dict(name=job.name, kind=job.kind, status="done", error="", **job.columns())
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -297,14 +304,19 @@ def execute(job, settings: WorkSettings) -> dict:
         except Exception as exc:  # noqa: BLE001 - any failure of one job must not stop the batch
             row.update(status="failed", error=_one_line(exc))
     seconds = time.perf_counter() - clock
+    # the process's CPU time: well below `seconds` when the machine's cores are shared
+    cpu_seconds = time.process_time() - cpu
+    if row["status"] == "done" and job.save and not output.is_file():
+        row.update(status="failed", error=f"the job wrote no output at {str(output)!r}")
     messages = list(dict.fromkeys(" ".join(str(w.message).split()) for w in caught))
     if row["status"] == "failed":
         # an output of an earlier run would be taken for this job's
         output.unlink(missing_ok=True)
+    saved = row["status"] == "done" and job.save
     row.update(
-        seconds=seconds, worker=_worker_name(), host=socket.gethostname(), started=started,
-        output=str(output) if row["status"] == "done" else "",
-        output_bytes=output.stat().st_size if row["status"] == "done" else None,
+        seconds=seconds, cpu_seconds=cpu_seconds, worker=_worker_name(), host=socket.gethostname(), started=started,
+        output=str(output) if saved else "", output_bytes=output.stat().st_size if saved else None,
+        tpscore_version=_version(),
         load_seconds=context.load_seconds, loads=context.loads,
         warnings=" | ".join(messages)[:500], spec_hash=job.spec_hash)
     row = {key: _json_value(value) for key, value in row.items()}
