@@ -288,7 +288,9 @@ def run(jobs, out, *, scheduler: str | None = None, client=None, workers: int | 
             limit = max_in_flight or max(IN_FLIGHT_LEAST, 4 * sum(threads.values()))
             meter.start = time.perf_counter()
             pending = iter(to_run)
-            completed = as_completed()
+            # results come with the futures, fetched on the client's event loop as the
+            # futures finish, rather than one blocking round trip per job here
+            completed = as_completed(with_results=True, raise_errors=False)
 
             def submit_next() -> None:
                 job = next(pending, None)
@@ -301,12 +303,13 @@ def run(jobs, out, *, scheduler: str | None = None, client=None, workers: int | 
             for _ in range(limit):
                 submit_next()
             written = time.perf_counter()
-            for future in completed:
+            for future, result in completed:
                 _, job = in_flight.pop(future.key)
-                try:
-                    row = future.result()
-                except Exception as exc:  # noqa: BLE001 - the job's failure, not the batch's
-                    row = _failed_row(job, exc)
+                if future.status == "finished":
+                    row = result
+                else:  # the task raised (an error of the machine, retries spent; a worker died
+                    # each time it ran the job): the job's failure, not the batch's
+                    row = _failed_row(job, result[1] if isinstance(result, tuple) else result)
                 future.release()
                 rows[job.name] = row
                 meter.update(row["status"])
