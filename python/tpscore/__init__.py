@@ -78,6 +78,7 @@ from .face.pose import ImplausibleLandmarksWarning, MirroredLandmarksError, Scan
 from .rbf import RBF, RBF_KERNELS, TPS
 from .sparse import PatternCholesky, SparseCholesky
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
+from . import batch  # after the methods it runs in batches
 
 
 __all__ = [
@@ -144,6 +145,7 @@ __all__ = [
     "transfer",
     "PersonMismatchWarning",
     # submodules
+    "batch",
     "datasets",
     "render",
     "viewer",

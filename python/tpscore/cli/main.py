@@ -8,6 +8,7 @@
     tpscore build-afm [--out average_face.npz]
     tpscore elastic --face-model face_model.npz --out DIR   (fit and clone expressions)
     tpscore adapt TEMPLATE SCAN --template-landmarks T.lm3 --scan-landmarks S.lm3 --out fitted.obj
+    tpscore batch DIR --out OUT [--au 12 4] [--pairs next-2] [--scheduler tcp://host:8786]
 
 Errors are reported as one line on stderr (exit status 2), not as a traceback.
 """
@@ -22,12 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from .._version import __version__
-from ..expression import TransferOptions, align_rigid, transfer
+from ..batch.scores import surface_distances
+from ..expression import TransferOptions, transfer
 from ..face import io
 from ..face.average_face import afm_faces, build_average_face
 from ..face.grid import MAX_GRID_VERTICES, load_scan
-from ..spatial import MeshSurface
 from .adapt import add_adapt_parser, adapt_command
+from .batch import add_batch_parser, batch_command
 from .demo import run_demo
 from .elastic import add_elastic_parser, elastic_command
 from .outputs import transfer_picture, write_result_mesh, write_result_page, write_sweep_gif
@@ -110,7 +112,12 @@ def run_transfer(args) -> int:
     errors = None
     if args.truth:
         truth = load_scan(args.truth, args.truth_landmarks, shape=shape)
-        errors, neutral_errors = _distance_to_truth(result, truth, grids[2])
+        # distances to the true surface rigidly aligned onto the target's neutral scan
+        # in the target grid's frame, where the truth is aligned (a scan resampled from
+        # another frame has its vertices in that frame)
+        animation = result.animation
+        errors, neutral_errors = surface_distances(
+            [animation.frame_in_grid(result.magnitude), animation.frame_in_grid(0.0)], result.mask, truth, grids[2])
         # score where the expression shows: the neutral target is off the true surface
         moving = neutral_errors > 0.5
         rms = lambda d: float(np.sqrt(np.mean(d ** 2)))  # noqa: E731
@@ -129,26 +136,6 @@ def run_transfer(args) -> int:
         write_result_page(result, args.html)
         progress.step(f"wrote {args.html}")
     return 0
-
-
-def _distance_to_truth(result, truth, target) -> tuple[np.ndarray, np.ndarray]:
-    """(H, W) distances (mm) from the animated target's vertices, and from its neutral
-    vertices, to the true expressive surface, after aligning the truth rigidly onto the
-    target's neutral scan (landmarks, then robust ICP, which the still part of the face
-    decides); NaN where the grid is invalid."""
-
-    align = align_rigid(truth, target).transform
-    mesh = truth.mesh()
-    surface = MeshSurface(align.apply(mesh.vertices), mesh.faces)
-    result_distances = np.full(result.mask.shape, np.nan)
-    neutral_distances = np.full(result.mask.shape, np.nan)
-    # in the target grid's frame, where the truth was aligned (a scan resampled from
-    # another frame has its vertices in that frame)
-    animated = result.animation.frame_in_grid(result.magnitude)
-    neutral = result.animation.frame_in_grid(0.0)
-    result_distances[result.mask] = surface.closest_point(animated[result.mask]).distances
-    neutral_distances[result.mask] = surface.closest_point(neutral[result.mask]).distances
-    return result_distances, neutral_distances
 
 
 def run_build_afm(args) -> int:
@@ -188,6 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quiet", action="store_true")
     add_elastic_parser(sub)
     add_adapt_parser(sub)
+    add_batch_parser(sub)
     b = sub.add_parser("build-afm", help="rebuild the average face model from the procedural faces")
     b.add_argument("--out", default="average_face.npz")
     b.add_argument("--grid", default="150x150")
@@ -199,7 +187,8 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     handlers = {"transfer": run_transfer, "demo": run_demo_command, "build-afm": run_build_afm,
-                "elastic": elastic_command, "adapt": adapt_command}
+                "elastic": elastic_command, "adapt": adapt_command,
+                "batch": batch_command}
     with warnings.catch_warnings():
         warnings.simplefilter("default")
         warnings.showwarning = lambda message, *_args, **_kw: print(
