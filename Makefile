@@ -5,7 +5,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 SOURCES := pyproject.toml CMakeLists.txt $(shell find cpp python -type f -not -name '*.pyc' 2>/dev/null)
 
-.PHONY: all install test demo bench clean
+.PHONY: all install test demo bench bench-skin clean
 
 all: install
 
@@ -31,6 +31,12 @@ demo: install
 bench: install
 	$(PY) -m pytest benchmarks -q -p no:cacheprovider -o python_files="bench_*.py" --benchmark-columns=min,median,mean,rounds --benchmark-sort=name
 	$(PY) benchmarks/fidelity.py $(FIDELITY_ARGS)
+
+# The physical skin's stability sweep and fidelity benchmark (about an hour on two
+# cores; the fidelity part skips without ../shared): bench-output/skin_*.md.
+bench-skin: install
+	$(PY) benchmarks/skin_stability.py
+	$(PY) benchmarks/skin_fidelity.py $(SKIN_FIDELITY_ARGS)
 
 clean:
 	rm -rf build $(VENV) demo-output .pytest_cache .benchmarks

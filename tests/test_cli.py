@@ -122,3 +122,7 @@ def test_demo_writes_meshes_pictures_and_pages(tmp_path):
     for name in ("source_neutral", "source_au12", "target_neutral"):
         for suffix in ("bnt", "lm3", "png"):
             assert (out / "scans" / f"{name}.{suffix}").is_file()
+    # the physical skin: a fitted scan smiles, frowns and opens its jaw
+    for stem in ("smile", "frown", "jaw"):
+        assert (out / f"skin_{stem}.png").stat().st_size > 1000
+    assert (out / "skin_expressions.gif").stat().st_size > 1000

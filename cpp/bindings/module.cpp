@@ -14,6 +14,7 @@ void bind_mesh_ops(nb::module_& m);
 void bind_sparse_solve(nb::module_& m);
 void bind_lattice_gram(nb::module_& m);
 void bind_raster(nb::module_& m);
+void bind_skin_sim(nb::module_& m);
 
 NB_MODULE(_core, m) {
     m.doc() = "tpscore's compiled kernels (private: use the tpscore package instead)";
@@ -32,4 +33,5 @@ NB_MODULE(_core, m) {
     bind_sparse_solve(m);
     bind_lattice_gram(m);
     bind_raster(m);
+    bind_skin_sim(m);
 }

@@ -8,7 +8,7 @@ rendering in :mod:`tpscore.render` and the browser page of a result in
 """
 from __future__ import annotations
 
-from . import datasets, render, viewer
+from . import datasets, physics, render, viewer
 from ._version import __version__
 from .face import landmarks
 from ._threads import max_threads, num_threads, set_num_threads
@@ -147,6 +147,7 @@ __all__ = [
     # submodules
     "batch",
     "datasets",
+    "physics",
     "render",
     "viewer",
     # compactly supported RBF

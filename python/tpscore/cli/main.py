@@ -9,6 +9,7 @@
     tpscore elastic --face-model face_model.npz --out DIR   (fit and clone expressions)
     tpscore adapt TEMPLATE SCAN --template-landmarks T.lm3 --scan-landmarks S.lm3 --out fitted.obj
     tpscore batch DIR --out OUT [--au 12 4] [--pairs next-2] [--scheduler tcp://host:8786]
+    tpscore simulate SCAN --au 12:0.6 [--jaw 10] --out settled.npz [--gif smile.gif]   (physical skin)
 
 Errors are reported as one line on stderr (exit status 2), not as a traceback.
 """
@@ -33,6 +34,7 @@ from .batch import add_batch_parser, batch_command
 from .demo import run_demo
 from .elastic import add_elastic_parser, elastic_command
 from .outputs import transfer_picture, write_result_mesh, write_result_page, write_sweep_gif
+from .simulate import add_simulate_parser, simulate_command
 
 __all__ = ["main"]
 
@@ -176,6 +178,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_elastic_parser(sub)
     add_adapt_parser(sub)
     add_batch_parser(sub)
+    add_simulate_parser(sub)
     b = sub.add_parser("build-afm", help="rebuild the average face model from the procedural faces")
     b.add_argument("--out", default="average_face.npz")
     b.add_argument("--grid", default="150x150")
@@ -188,7 +191,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     handlers = {"transfer": run_transfer, "demo": run_demo_command, "build-afm": run_build_afm,
                 "elastic": elastic_command, "adapt": adapt_command,
-                "batch": batch_command}
+                "batch": batch_command,
+                "simulate": simulate_command}
     with warnings.catch_warnings():
         warnings.simplefilter("default")
         warnings.showwarning = lambda message, *_args, **_kw: print(

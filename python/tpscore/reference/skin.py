@@ -1,0 +1,435 @@
+"""NumPy reference for the layered skin simulation (``tpscore/skin_sim.hpp``).
+
+The same model and the same step, vectorised over springs, anchors and muscle
+entries and scattered to particles with ``np.add.at``; the implicit step assembles
+(M + dt D + dt^2 K) with scipy.sparse and solves it with ``spsolve``. ``arrays`` is a
+:class:`tpscore.physics.system.SkinArrays` (or anything with the same attributes).
+Sums run in a different order than in the compiled core, so results agree to
+rounding, not bit for bit.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .spatial import closest_point_on_triangles
+
+__all__ = [
+    "SKULL",
+    "MANDIBLE",
+    "LINEAR",
+    "SPHINCTER",
+    "jaw_rotation",
+    "bone_points",
+    "spring_state",
+    "forces",
+    "potential_energy",
+    "kinetic_energy",
+    "project_contacts",
+    "stiffness_matrix",
+    "damping_matrix",
+    "free_forces",
+    "locate",
+    "step",
+    "run",
+]
+
+SKULL, MANDIBLE = 0, 1
+LINEAR, SPHINCTER = 0, 1
+#: Length (mm) over which a muscle's pull fades to zero at its attachment.
+MUSCLE_CORE = 1.0
+
+
+def jaw_rotation(axis, angle: float) -> np.ndarray:
+    """Rotation matrix (3, 3) by `angle` radians about the unit `axis` (Rodrigues)."""
+    k = np.asarray(axis, dtype=np.float64)
+    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.cos(angle) * np.eye(3) + np.sin(angle) * cross + (1.0 - np.cos(angle)) * np.outer(k, k)
+
+
+def bone_points(arrays, points, bones, angle: float) -> np.ndarray:
+    """Points fixed to bones, with the mandible's rotated by the jaw angle."""
+    points = np.array(points, dtype=np.float64, copy=True)
+    on_jaw = np.asarray(bones) == MANDIBLE
+    if on_jaw.any():
+        rotation = jaw_rotation(arrays.jaw_axis, angle)
+        points[on_jaw] = arrays.jaw_pivot + (points[on_jaw] - arrays.jaw_pivot) @ rotation.T
+    return points
+
+
+def spring_state(arrays, positions):
+    """Per spring: unit direction first -> second (s, 3), length, force (tension > 0), slope."""
+    delta = positions[arrays.spring_second] - positions[arrays.spring_first]
+    length = np.linalg.norm(delta, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        direction = np.where(length[:, None] > 0, delta / length[:, None], 0.0)
+    extension = length - arrays.spring_rest
+    limit = arrays.spring_knee * arrays.spring_rest
+    beyond = np.abs(extension) > limit
+    high = arrays.spring_stiffness * limit + arrays.spring_stiffness_high * (np.abs(extension) - limit)
+    force = np.where(beyond, np.sign(extension) * high, arrays.spring_stiffness * extension)
+    slope = np.where(beyond, arrays.spring_stiffness_high, arrays.spring_stiffness)
+    return direction, length, force, slope
+
+
+def _skull_at(arrays, jaw_angle):
+    """Skull vertices, vertex normals and triangle normals at a jaw angle."""
+    skull = bone_points(arrays, arrays.skull_vertices, arrays.skull_bone, jaw_angle)
+    normals = arrays.skull_normals.copy()
+    on_jaw = arrays.skull_bone == MANDIBLE
+    normals[on_jaw] = normals[on_jaw] @ jaw_rotation(arrays.jaw_axis, jaw_angle).T
+    faces = arrays.skull_faces
+    cross = np.cross(skull[faces[:, 1]] - skull[faces[:, 0]], skull[faces[:, 2]] - skull[faces[:, 0]])
+    length = np.linalg.norm(cross, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        face_normals = np.where(length[:, None] > 0, cross / length[:, None], 0.0)
+    return skull, normals, face_normals
+
+
+def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
+    """Where points meet the skull: (height (m,), normal (m, 3), closest point (m, 3)).
+
+    The closest point of the triangles listed near each point's skull vertex `foot` that
+    lie wholly on that vertex's bone, the distance to it signed by the triangle's
+    normal, and the unit direction out of the skull; the vertex's tangent plane where
+    no such triangle exists. Where the closest point lies on the skull's rim, the skull
+    continues as the rim triangle's plane.
+    """
+    skull, normals, face_normals = _skull_at(arrays, jaw_angle) if geometry is None else geometry
+    points = np.asarray(points, dtype=np.float64)
+    foot = np.asarray(foot, dtype=np.int64)
+    start, stop = arrays.skull_face_indptr[foot], arrays.skull_face_indptr[foot + 1]
+    bone = arrays.skull_bone[foot]
+    best = np.full(len(points), np.inf)
+    best_point = np.zeros_like(points)
+    best_face = np.full(len(points), -1)
+    best_rim = np.zeros(len(points), dtype=bool)
+    for offset in range(int((stop - start).max(initial=0))):
+        has = start + offset < stop
+        face = np.where(has, arrays.skull_vertex_faces[np.minimum(start + offset, len(arrays.skull_vertex_faces) - 1)],
+                        0)
+        corners = arrays.skull_faces[face]
+        has &= np.all(arrays.skull_bone[corners] == bone[:, None], axis=1)
+        closest, bary, d2 = closest_point_on_triangles(points, skull[corners[:, 0]], skull[corners[:, 1]],
+                                                      skull[corners[:, 2]])
+        rim_bits = arrays.skull_face_rim[face]
+        on_rim = np.zeros(len(points), dtype=bool)
+        for k in range(3):
+            on_rim |= (bary[:, k] == 0.0) & (((rim_bits >> k) & 1) == 1)
+        better = has & (d2 < best)  # strict: the first triangle wins a tie, as in the core
+        best_rim = np.where(better, on_rim, best_rim)
+        best = np.where(better, d2, best)
+        best_point = np.where(better[:, None], closest, best_point)
+        best_face = np.where(better, face, best_face)
+    found = best_face >= 0
+    offset = points - best_point
+    distance = np.sqrt(np.where(found, best, 0.0))
+    face_normal = face_normals[np.maximum(best_face, 0)]
+    side = np.where(np.einsum("ij,ij->i", offset, face_normal) >= 0, 1.0, -1.0)
+    height = side * distance
+    with np.errstate(invalid="ignore", divide="ignore"):
+        normal = np.where((distance > 1e-12)[:, None], side[:, None] * offset / distance[:, None], face_normal)
+    plane_normal = normals[foot]
+    plane_height = np.einsum("ij,ij->i", points - skull[foot], plane_normal)
+    # beside the rim of the bone: outside, at the distance from the rim
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rim_normal = np.where((distance > 1e-12)[:, None], offset / distance[:, None], face_normal)
+    height = np.where(found, np.where(best_rim, distance, height), plane_height)
+    normal = np.where(found[:, None], np.where(best_rim[:, None], rim_normal, normal), plane_normal)
+    point = np.where(found[:, None], best_point, points - plane_height[:, None] * plane_normal)
+    return height, normal, point
+
+
+def forces(arrays, positions, velocities, contractions, jaw_angle: float, foot=None) -> np.ndarray:
+    """Net force (n, 3) on every particle; with `foot` (each particle's nearest skull
+    vertex) the contact penalty too."""
+    positions = np.asarray(positions, dtype=np.float64)
+    velocities = np.asarray(velocities, dtype=np.float64)
+    n = len(arrays.masses)
+    total = -arrays.drag * arrays.masses[:, None] * velocities
+    direction, _, force, _ = spring_state(arrays, positions)
+    relative = velocities[arrays.spring_second] - velocities[arrays.spring_first]
+    along = force + arrays.spring_damping * np.einsum("ij,ij->i", direction, relative)
+    pull = along[:, None] * direction
+    np.add.at(total, arrays.spring_first, pull)
+    np.add.at(total, arrays.spring_second, -pull)
+
+    targets = bone_points(arrays, arrays.anchor_target, arrays.anchor_bone, jaw_angle)
+    p = arrays.anchor_particle
+    np.add.at(total, p, arrays.anchor_stiffness[:, None] * (targets - positions[p])
+              - arrays.anchor_damping[:, None] * velocities[p])
+
+    contractions = np.asarray(contractions, dtype=np.float64)
+    if len(arrays.muscle_kind):
+        points = bone_points(arrays, arrays.muscle_point, arrays.muscle_bone, jaw_angle)
+        counts = np.diff(arrays.muscle_indptr)
+        muscle = np.repeat(np.arange(len(arrays.muscle_kind)), counts)
+        particle = arrays.muscle_particles
+        toward = points[muscle] - positions[particle]
+        sphincter = arrays.muscle_kind[muscle] == SPHINCTER
+        a = arrays.muscle_axes[muscle, :3]
+        b = arrays.muscle_axes[muscle, 3:]
+        in_plane = (np.einsum("ij,ij->i", a, toward)[:, None] * a
+                    + np.einsum("ij,ij->i", b, toward)[:, None] * b)
+        toward = np.where(sphincter[:, None], in_plane, toward)
+        length = np.linalg.norm(toward, axis=1)
+        magnitude = contractions[muscle] * arrays.muscle_max_force[muscle] * arrays.muscle_weights
+        # the pull fades to zero within MUSCLE_CORE of the attachment (see the core)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.where((length > 0) & (magnitude != 0), magnitude / np.maximum(length, MUSCLE_CORE), 0.0)
+        np.add.at(total, particle, scale[:, None] * toward)
+    if foot is not None and len(arrays.skull_vertices):
+        foot = np.asarray(foot)
+        rows = np.flatnonzero((foot >= 0) & (arrays.contact_stiffness > 0))
+        height, normal, _ = locate(arrays, positions[rows], foot[rows], jaw_angle)
+        inside = height < arrays.contact_margin[rows]
+        r = rows[inside]
+        push = (arrays.contact_stiffness[r] * (arrays.contact_margin[r] - height[inside])
+                - arrays.contact_damping[r] * np.einsum("ij,ij->i", velocities[r], normal[inside]))
+        total[r] += push[:, None] * normal[inside]
+    assert total.shape == (n, 3)
+    return total
+
+
+def potential_energy(arrays, positions, jaw_angle: float = 0.0) -> float:
+    """Elastic energy of the springs (biphasic law integrated) and the anchors."""
+    _, length, _, _ = spring_state(arrays, positions)
+    extension = np.abs(length - arrays.spring_rest)
+    limit = arrays.spring_knee * arrays.spring_rest
+    beyond = np.maximum(extension - limit, 0.0)
+    below = np.minimum(extension, limit)
+    springs = (0.5 * arrays.spring_stiffness * below ** 2 + arrays.spring_stiffness * limit * beyond
+               + 0.5 * arrays.spring_stiffness_high * beyond ** 2)
+    targets = bone_points(arrays, arrays.anchor_target, arrays.anchor_bone, jaw_angle)
+    anchors = 0.5 * arrays.anchor_stiffness * np.sum((positions[arrays.anchor_particle] - targets) ** 2, axis=1)
+    return float(springs.sum() + anchors.sum())
+
+
+def kinetic_energy(arrays, velocities) -> float:
+    return float(0.5 * np.sum(arrays.masses[:, None] * np.asarray(velocities) ** 2))
+
+
+def project_contacts(arrays, positions, velocities, foot, jaw_angle: float):
+    """Skull contact: walk each particle's skull vertex downhill to the nearest one, and
+    move a particle below that vertex's tangent plane back onto it."""
+    positions = np.array(positions, dtype=np.float64, copy=True)
+    velocities = np.array(velocities, dtype=np.float64, copy=True)
+    foot = np.array(foot, dtype=np.int64, copy=True)
+    if len(arrays.skull_vertices) == 0:
+        return positions, velocities, foot
+    skull, _, _ = _skull_at(arrays, jaw_angle)
+    active = np.flatnonzero(foot >= 0)
+    indptr, neighbours = arrays.skull_indptr, arrays.skull_neighbours
+    walking = active.copy()
+    # the walk stays on each particle's own bone (see the core)
+    bone_of = arrays.skull_bone[foot]
+    best = np.sum((skull[foot[walking]] - positions[walking]) ** 2, axis=1)
+    for _ in range(64):
+        if walking.size == 0:
+            break
+        moved = np.zeros(len(walking), dtype=bool)
+        # the neighbours in stored order, a strict improvement each, as the core does
+        start, stop = indptr[foot[walking]], indptr[foot[walking] + 1]
+        current = foot[walking].copy()
+        bone = bone_of[walking]
+        for offset in range(int((stop - start).max(initial=0))):
+            has = start + offset < stop
+            candidate = np.where(has, neighbours[np.minimum(start + offset, len(neighbours) - 1)], -1)
+            has &= arrays.skull_bone[np.maximum(candidate, 0)] == bone
+            distance = np.where(has, np.sum((skull[np.maximum(candidate, 0)] - positions[walking]) ** 2, axis=1),
+                                np.inf)
+            better = distance < best
+            best = np.where(better, distance, best)
+            current = np.where(better, candidate, current)
+            moved |= better
+        foot[walking] = current
+        walking, best = walking[moved], best[moved]
+    height, normal, point = locate(arrays, positions[active], foot[active], jaw_angle)
+    below = height < 0.0
+    rows = active[below]
+    positions[rows] = point[below]
+    inward = np.einsum("ij,ij->i", velocities[rows], normal[below])
+    velocities[rows] -= np.minimum(inward, 0.0)[:, None] * normal[below]
+    return positions, velocities, foot
+
+
+def _blocks(arrays, positions, tension_only: bool = True):
+    """Per spring: the 3 x 3 stiffness block -dF/dx and the damping direction outer product."""
+    direction, length, force, slope = spring_state(arrays, positions)
+    along = np.einsum("si,sj->sij", direction, direction)
+    geometric = force if not tension_only else np.maximum(force, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(length > 0, geometric / length, 0.0)
+    stiffness = slope[:, None, None] * along + ratio[:, None, None] * (np.eye(3) - along)
+    return stiffness, along
+
+
+def _assemble(n, first, second, blocks, diagonal_extra):
+    """(3n, 3n) matrix with +B on both diagonal blocks and -B off the diagonal, per spring."""
+    rows, cols, vals = [], [], []
+    r = np.arange(3)
+    for a, b, sign in ((first, first, 1.0), (second, second, 1.0), (first, second, -1.0), (second, first, -1.0)):
+        rows.append((3 * a[:, None, None] + r[None, :, None]).repeat(3, axis=2).reshape(-1))
+        cols.append((3 * b[:, None, None] + r[None, None, :]).repeat(3, axis=1).reshape(-1))
+        vals.append(sign * blocks.reshape(-1))
+    matrix = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                           shape=(3 * n, 3 * n)).tocsr()
+    return matrix + sp.diags(np.repeat(diagonal_extra, 3))
+
+
+def stiffness_matrix(arrays, positions, *, tension_only: bool = True, foot=None,
+                     jaw_angle: float = 0.0) -> sp.csr_matrix:
+    """K = -df/dx of the springs, anchors and contact penalty at `positions` (3n, 3n);
+    muscles left out (the implicit step treats them explicitly). With tension_only the
+    geometric term of compressed springs is dropped, as the implicit step does; the
+    penalty counts where a particle is within the contact margin of the skull around
+    its skull vertex `foot` (nowhere without `foot`)."""
+    n = len(arrays.masses)
+    positions = np.asarray(positions, dtype=np.float64)
+    blocks, _ = _blocks(arrays, positions, tension_only)
+    anchor = np.zeros(n)
+    np.add.at(anchor, arrays.anchor_particle, arrays.anchor_stiffness)
+    matrix = _assemble(n, arrays.spring_first, arrays.spring_second, blocks, anchor)
+    rows, normal = _contact_rows(arrays, positions, foot, jaw_angle)
+    if len(rows):
+        matrix = matrix + _block_diagonal(n, rows, arrays.contact_stiffness[rows, None, None]
+                                          * np.einsum("si,sj->sij", normal, normal))
+    return matrix
+
+
+def damping_matrix(arrays, positions, *, foot=None, jaw_angle: float = 0.0) -> sp.csr_matrix:
+    """D = -df/dv at `positions` (3n, 3n): spring damping along each spring, anchor
+    damping, drag, and the contact penalty's damping where the stiffness matrix counts
+    the penalty."""
+    n = len(arrays.masses)
+    positions = np.asarray(positions, dtype=np.float64)
+    _, along = _blocks(arrays, positions)
+    diagonal = arrays.drag * arrays.masses.copy()
+    np.add.at(diagonal, arrays.anchor_particle, arrays.anchor_damping)
+    matrix = _assemble(n, arrays.spring_first, arrays.spring_second,
+                       arrays.spring_damping[:, None, None] * along, diagonal)
+    rows, normal = _contact_rows(arrays, positions, foot, jaw_angle)
+    if len(rows):
+        matrix = matrix + _block_diagonal(n, rows, arrays.contact_damping[rows, None, None]
+                                          * np.einsum("si,sj->sij", normal, normal))
+    return matrix
+
+
+def _contact_rows(arrays, positions, foot, jaw_angle):
+    """Particles within the contact margin of the skull, and their directions out of it."""
+    if len(arrays.skull_vertices) == 0 or foot is None:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+    foot = np.asarray(foot)
+    rows = np.flatnonzero((foot >= 0) & (arrays.contact_stiffness > 0))
+    height, normal, _ = locate(arrays, positions[rows], foot[rows], jaw_angle)
+    inside = height < arrays.contact_margin[rows]
+    return rows[inside], normal[inside]
+
+
+def _block_diagonal(n, rows, blocks):
+    r = np.arange(3)
+    row_index = (3 * rows[:, None, None] + r[None, :, None]).repeat(3, axis=2).reshape(-1)
+    col_index = (3 * rows[:, None, None] + r[None, None, :]).repeat(3, axis=1).reshape(-1)
+    return sp.coo_matrix((blocks.reshape(-1), (row_index, col_index)), shape=(3 * n, 3 * n)).tocsr()
+
+
+def step(arrays, positions, velocities, foot, contractions, jaw_angle: float, dt: float,
+         integrator: str = "symplectic"):
+    """One step: semi-implicit Euler or linearised backward Euler, then skull contact."""
+    positions = np.asarray(positions, dtype=np.float64)
+    velocities = np.asarray(velocities, dtype=np.float64)
+    force = forces(arrays, positions, velocities, contractions, jaw_angle, foot)
+    if integrator == "symplectic":
+        velocities = velocities + dt * force / arrays.masses[:, None]
+    elif integrator == "implicit":
+        stiffness = stiffness_matrix(arrays, positions, foot=foot, jaw_angle=jaw_angle)
+        damping = damping_matrix(arrays, positions, foot=foot, jaw_angle=jaw_angle)
+        mass = sp.diags(np.repeat(arrays.masses, 3))
+        system = (mass + dt * damping + dt * dt * stiffness).tocsc()
+        rhs = dt * (force.reshape(-1) - dt * (stiffness @ velocities.reshape(-1)))
+        velocities = velocities + spla.spsolve(system, rhs).reshape(-1, 3)
+    else:
+        raise ValueError(f"integrator must be 'symplectic' or 'implicit', got {integrator!r}")
+    positions = positions + dt * velocities
+    return project_contacts(arrays, positions, velocities, foot, jaw_angle)
+
+
+def free_forces(arrays, positions, velocities, foot, contractions, jaw_angle: float) -> np.ndarray:
+    """The net force less what the skull bears: the inward normal part of the force on a
+    particle lying on the skull (put there by the projection) is removed."""
+    force = forces(arrays, positions, velocities, contractions, jaw_angle, foot)
+    if len(arrays.skull_vertices) == 0:
+        return force
+    foot = np.asarray(foot)
+    rows = np.flatnonzero(foot >= 0)
+    height, normal, _ = locate(arrays, positions[rows], foot[rows], jaw_angle)
+    inward = np.einsum("ij,ij->i", force[rows], normal)
+    touching = (height <= 1e-9) & (inward < 0)
+    force[rows[touching]] -= inward[touching][:, None] * normal[touching]
+    return force
+
+
+def _smoothstep(s: float) -> float:
+    s = min(max(s, 0.0), 1.0)
+    return s * s * (3.0 - 2.0 * s)
+
+
+def run(arrays, positions, velocities, foot, contractions, jaw_angle: float, *, integrator="symplectic",
+        dt=1e-4, max_steps=10000, ramp_time=0.0, velocity_tolerance=0.5, force_tolerance=1e-3,
+        patience=5, check_every=1, divergence_distance=200.0, record_every=0, record_count=0,
+        rest_stiffness=None):
+    """The core's run loop, step for step: ramp the controls (smoothstep) to their
+    target, test for rest under the full controls, stop when settled or diverged.
+
+    Returns (positions, velocities, foot, report dict, frame_times, frames).
+    """
+    positions = np.array(positions, dtype=np.float64, copy=True)
+    velocities = np.array(velocities, dtype=np.float64, copy=True)
+    foot = np.array(foot, dtype=np.int64, copy=True)
+    contractions = np.asarray(contractions, dtype=np.float64)
+    rest = positions.copy()
+    if rest_stiffness is None:
+        rest_stiffness = np.zeros(len(arrays.masses))
+        np.add.at(rest_stiffness, arrays.spring_first, arrays.spring_stiffness)
+        np.add.at(rest_stiffness, arrays.spring_second, arrays.spring_stiffness)
+        np.add.at(rest_stiffness, arrays.anchor_particle, arrays.anchor_stiffness)
+        rest_stiffness[~(rest_stiffness > 0)] = 1.0
+    report = dict(steps=0, settled=False, diverged=False, time=0.0, max_speed=0.0, max_residual=0.0)
+    times, frames = [], []
+
+    def record(time):
+        if record_count > 0:
+            times.append(time)
+            frames.append(positions[:record_count].copy())
+
+    if record_every > 0:
+        record(0.0)
+    calm = 0
+    last_recorded = 0
+    for k in range(int(max_steps)):
+        start = k * dt
+        if start >= ramp_time and k % max(int(check_every), 1) == 0:
+            force = free_forces(arrays, positions, velocities, foot, contractions, jaw_angle)
+            speed = float(np.linalg.norm(velocities, axis=1).max())
+            residual = float((np.linalg.norm(force, axis=1) / rest_stiffness).max())
+            report.update(max_speed=speed, max_residual=residual)
+            calm = calm + 1 if speed < velocity_tolerance and residual < force_tolerance else 0
+            if calm >= patience:
+                report["settled"] = True
+                break
+        s = _smoothstep((start + dt) / ramp_time) if ramp_time > 0 else 1.0
+        positions, velocities, foot = step(arrays, positions, velocities, foot, s * contractions,
+                                           s * jaw_angle, dt, integrator)
+        report.update(steps=k + 1, time=(k + 1) * dt)
+        far = np.linalg.norm(positions - rest, axis=1).max()
+        if not (np.isfinite(positions).all() and np.isfinite(velocities).all()) or far > divergence_distance:
+            report["diverged"] = True
+            break
+        if record_every > 0 and (k + 1) % record_every == 0:
+            record((k + 1) * dt)
+            last_recorded = k + 1
+    if record_every > 0 and last_recorded != report["steps"] and not report["diverged"]:
+        record(report["time"])
+    frames = np.array(frames).reshape(-1, max(int(record_count), 0), 3) if frames else np.zeros((0, record_count, 3))
+    return positions, velocities, foot, report, np.array(times), frames
