@@ -13,6 +13,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .arguments import grid_shape
+
 __all__ = ["add_batch_parser", "batch_command"]
 
 
@@ -67,9 +69,8 @@ def _subjects(text, option: str):
 def _jobs(args):
     from ..batch import adapt_jobs, read_manifest, transfer_jobs
     from ..batch.jobs import transfer_options
-    from .main import _grid_shape
 
-    grid = _grid_shape(args.grid)
+    grid = grid_shape(args.grid)
     if (args.folder is None) == (args.manifest is None):
         raise ValueError("give a folder DIR or --manifest CSV (one of them)")
     if args.manifest:

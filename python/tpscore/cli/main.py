@@ -28,8 +28,9 @@ from ..batch.scores import surface_distances
 from ..expression import TransferOptions, transfer
 from ..face import io
 from ..face.average_face import afm_faces, build_average_face
-from ..face.grid import MAX_GRID_VERTICES, load_scan
+from ..face.grid import load_scan
 from .adapt import add_adapt_parser, adapt_command
+from .arguments import grid_shape
 from .batch import add_batch_parser, batch_command
 from .demo import run_demo
 from .elastic import add_elastic_parser, elastic_command
@@ -82,21 +83,10 @@ def _add_transfer(sub) -> None:
     p.add_argument("--quiet", action="store_true")
 
 
-def _grid_shape(text: str) -> tuple[int, int]:
-    try:
-        h, w = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"--grid must look like 150x150, got {text!r}") from None
-    if h < 8 or w < 8 or h * w > MAX_GRID_VERTICES:
-        raise ValueError(f"--grid must have at least 8 rows and columns and at most {MAX_GRID_VERTICES:,} "
-                         f"vertices (1024x1024), got {text!r}")
-    return h, w
-
-
 def run_transfer(args) -> int:
 
     progress = _Progress(args.quiet)
-    shape = _grid_shape(args.grid)
+    shape = grid_shape(args.grid)
     grids = []
     for path, lm in ((args.source_neutral, args.source_neutral_landmarks),
                      (args.source_expr, args.source_expr_landmarks), (args.target, args.target_landmarks)):
@@ -145,7 +135,7 @@ def run_build_afm(args) -> int:
     progress = _Progress(args.quiet)
     faces = afm_faces()
     progress.step(f"generated {len(faces)} procedural faces")
-    afm = build_average_face(faces, shape=_grid_shape(args.grid))
+    afm = build_average_face(faces, shape=grid_shape(args.grid))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     afm.save(args.out)
     progress.step(f"wrote {args.out} ({afm.grid.mask.sum()} valid vertices)")
