@@ -2,12 +2,14 @@
 
 Generates development subjects with ../shared/tools/make_scans.py (scans with their
 colour images, cached under bench-output/scans), transfers each AU from a source
-subject to other target subjects, scores each prediction with
-../shared/tools/score_transfer.py, and writes the per-AU table for each pipeline
-variant to bench-output/fidelity.md (and .json).
+subject to other target subjects as one batch (tpscore.batch, on a local Dask cluster
+or --scheduler's), scores each prediction against the scans' _gt.npz sidecars (the
+arithmetic of ../shared/tools/score_transfer.py, in tpscore.batch.scores), and writes
+the per-AU table for each pipeline variant to bench-output/fidelity.md (and .json).
 
     python benchmarks/fidelity.py [--subjects 0-19] [--offsets 1 2]
         [--variants noop published default geometry-only] [--registration 0-3]
+        [--workers N | --scheduler tcp://host:8786]
 
 Variants: ``default`` (texture-aided when the scans have images), ``geometry-only``
 (the same scans with their images withheld), ``expressive-without-image`` (only the
@@ -22,40 +24,46 @@ Skips (exit 0 with a message) when ../shared is absent.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
 import subprocess
 import sys
-import time
 import warnings
 from collections import defaultdict
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from texture_ablations import ABLATIONS, ablation
+from texture_ablations import ABLATIONS
+from tpscore.batch import TransferJob
 
 ROOT = Path(__file__).resolve().parents[1]
+BENCHMARKS = Path(__file__).resolve().parent
 AU_CODES = {"1": "UFAU_1_0", "2": "UFAU_2_0", "4": "UFAU_4_0", "12": "LFAU_12_0",
             "12L": "LFAU_12L_0", "14": "LFAU_14_0", "15": "LFAU_15_0", "17": "LFAU_17_0",
             "20": "LFAU_20_0"}
 
 
+# The score of each pair in fidelity.json, under the reference scorer's names.
+SCORE_KEYS = ("rms_mm", "noop_rms_mm", "p95_mm", "leak_rms_mm", "leak_oracle_mm", "gt_disp_rms_mm", "n_valid",
+              "n_active", "n_far", "n_masked_out", "n_pred_missing", "neutral_offsurface_rms_mm", "residual_ratio")
+_BATCH_NAMES = {"leak_rms_mm": "leak_mm", "n_pred_missing": "pred_missing"}
+
+
+def score_value(score: dict, key: str):
+    """A score of a batch row or of tpscore.batch.scores by its reference name; a
+    record stores NaN as null."""
+    value = score[_BATCH_NAMES.get(key, key)]
+    return float("nan") if value is None else value
+
+
 def shared_dir() -> Path | None:
     env = os.environ.get("TPSCORE_SHARED")
     for path in ([Path(env)] if env else []) + [ROOT.parent / "shared"]:
-        if (path / "tools" / "score_transfer.py").is_file():
+        if (path / "tools" / "make_scans.py").is_file() and (path / "data" / "ict-facekit").is_dir():
             return path
     return None
-
-
-def load_module(path: Path, name: str):
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def parse_subjects(text: str) -> list[int]:
@@ -82,6 +90,27 @@ def scan_path(out: Path, subject: int, code: str) -> Path:
     return out / f"bs{subject:03d}" / f"bs{subject:03d}_{code}"
 
 
+@dataclass(frozen=True)
+class FidelityJob(TransferJob):
+    """A transfer of one variant: some scans' colour images withheld, and a texture
+    ablation (which patches the library) around the transfer. Workers unpickle it
+    from this script, so it carries what it needs."""
+
+    variant: str = "default"
+    withheld: tuple = ()  # roles (neutral, expressive, target) whose images are withheld
+
+    def transfer(self, source_neutral, source_expressive, target):
+        if str(BENCHMARKS) not in sys.path:  # a worker `dask worker` started does not have it
+            sys.path.insert(0, str(BENCHMARKS))
+        from texture_ablations import ablation as undo
+
+        grids = [replace(grid, image=None) if role in self.withheld else grid
+                 for role, grid in zip(("neutral", "expressive", "target"), (source_neutral, source_expressive, target))]
+        with warnings.catch_warnings(), undo(self.variant):
+            warnings.simplefilter("ignore")  # missing landmarks are expected here
+            return super().transfer(*grids)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--subjects", default="0-19")
@@ -104,17 +133,23 @@ def main(argv=None) -> int:
     ap.add_argument("--scan-args", default="",
                     help="extra make_scans.py options, e.g. \"--pose-deg 10 --missing-landmark-p 0.1\" "
                          "(the scans go to a folder named after them)")
+    ap.add_argument("--workers", type=int, help="local worker processes (default one per core)")
+    ap.add_argument("--scheduler", help="a running Dask scheduler instead (tcp://host:8786)")
+    ap.add_argument("--resume", action="store_true",
+                    help="keep the scores of transfers an interrupted run finished (only when the code has "
+                         "not changed since: a job's record does not know the code that made it)")
     args = ap.parse_args(argv)
 
     shared = shared_dir()
     if shared is None:
-        print("fidelity benchmark skipped: ../shared (make_scans.py, score_transfer.py) not found")
+        print("fidelity benchmark skipped: ../shared (make_scans.py, the ICT face model) not found")
         return 0
     import tpscore
     from tpscore import TransferOptions
+    from tpscore.batch import score_with_sidecars
 
-    scorer = load_module(shared / "tools" / "score_transfer.py", "score_transfer")
-    faces = np.load(shared / "data" / "ict-facekit" / "face_model.npz")["faces"]
+    faces_path = shared / "data" / "ict-facekit" / "face_model.npz"
+    faces = np.load(faces_path)["faces"]
     out = Path(args.out)
     scan_args = args.scan_args.split()
     scans = out / ("scans" + "".join(scan_args).replace("--", "_"))
@@ -150,27 +185,61 @@ def main(argv=None) -> int:
         variants[name] = replace(default, motion=replace(default.motion, **changes))
     for name in ABLATIONS:
         variants[name] = default
+    # the parts of texture tracking that are TextureOptions fields, turned off
+    variants["no-consistency-check"] = replace(default, texture=replace(default.texture, consistency_px=1e9))
+    variants["no-rim-check"] = replace(default, texture=replace(default.texture, rim_px=0))
     for name in args.variants:
         if name not in variants and name != "noop":
             raise SystemExit(f"unknown variant {name!r}")
     # which scans keep their colour images in each variant
     withheld = {"geometry-only": {"neutral", "expressive", "target"}, "expressive-without-image": {"expressive"}}
 
-    grids = {}
+    # every transfer of every variant is one job of one batch; neighbouring jobs share
+    # their three scans (one source, target and AU, all variants), which workers cache
+    n = len(subjects)
+    pairs = [(au, offset, source, subjects[(i + offset) % n])
+             for au in args.aus for i, source in enumerate(subjects) for offset in args.offsets]
+    transfers = [v for v in args.variants if v != "noop"]
 
-    def grid(subject, code, role="", variant=""):
-        key = (subject, code)
-        if key not in grids:
-            t0 = time.perf_counter()
-            grids[key] = tpscore.load_scan(str(scan_path(scans, subject, code)) + ".bnt")
-            timings["load+resample"].append(time.perf_counter() - t0)
-        if role in withheld.get(variant, ()):
-            return replace(grids[key], image=None)
-        return grids[key]
+    def job_name(variant, au, offset, source, target):
+        return f"{variant}__AU{au}__o{offset}__bs{source:03d}__bs{target:03d}"
+
+    jobs = [FidelityJob(job_name(variant, au, offset, source, target),
+                        f"{scan_path(scans, source, 'N_N_0')}.bnt", f"{scan_path(scans, source, AU_CODES[au])}.bnt",
+                        f"{scan_path(scans, target, 'N_N_0')}.bnt", au, options=variants[variant],
+                        truth=f"{scan_path(scans, target, AU_CODES[au])}.bnt", save=False, variant=variant,
+                        withheld=tuple(sorted(withheld.get(variant, ()))))
+            for au, offset, source, target in pairs for variant in transfers]
+    stem = "fidelity" + "".join(scan_args).replace("--", "_")
+    report = tpscore.batch.run(jobs, out / f"{stem}-jobs", gt_faces=faces_path, workers=args.workers,
+                               scheduler=args.scheduler, resume=args.resume)
+    print(report.summary(), flush=True)
+    done = {row["name"]: row for row in report.rows if row["status"] in ("done", "skipped")}
+    failed = {row["name"]: row for row in report.rows if row["status"] not in ("done", "skipped")}
+
+    targets = {}
+
+    def target_neutral(subject):
+        """(neutral grid with NaN off the mask, mask) of a target, for the no-op and for
+        a failed transfer (scored as a prediction that is missing everywhere)."""
+        if subject not in targets:
+            grid = tpscore.load_scan(str(scan_path(scans, subject, "N_N_0")) + ".bnt")
+            targets[subject] = np.where(grid.mask[..., None], grid.points, np.nan), grid.mask
+        return targets[subject]
 
     timings = defaultdict(list)
+    for row in done.values():
+        if row.get("loads"):
+            timings["load+resample"] += [row["load_seconds"] / row["loads"]] * int(row["loads"])
+    for variant in transfers:
+        for au, offset, source, target in pairs:
+            row = done.get(job_name(variant, au, offset, source, target))
+            if row is not None:
+                for stage, seconds in row["stage_seconds"].items():
+                    timings[f"{variant}: {stage}"].append(seconds)
+                timings[f"transfer ({variant})"].append(sum(row["stage_seconds"].values()))
+
     results = defaultdict(list)  # (variant, au) -> list of score dicts
-    n = len(subjects)
     for au in args.aus:
         code = AU_CODES[au]
         for offset in args.offsets:
@@ -178,29 +247,17 @@ def main(argv=None) -> int:
                 target = subjects[(i + offset) % n]
                 a_gt = str(scan_path(scans, target, "N_N_0")) + "_gt.npz"
                 b_gt = str(scan_path(scans, target, code)) + "_gt.npz"
-                tgt = grid(target, "N_N_0")
                 for variant in args.variants:
-                    if variant == "noop":
-                        neutral = np.where(tgt.mask[..., None], tgt.points, np.nan)
-                        pred, mask = neutral, tgt.mask
+                    name = job_name(variant, au, offset, source, target)
+                    if variant == "noop" or name in failed:
+                        if name in failed:
+                            print(f"  {variant} AU{au} {source}->{target}: {failed[name]['error']}", flush=True)
+                        neutral, mask = target_neutral(target)
+                        pred = neutral if variant == "noop" else np.full_like(neutral, np.nan)
+                        score = score_with_sidecars(pred, neutral, mask, a_gt, b_gt, faces)
                     else:
-                        t0 = time.perf_counter()
-                        try:
-                            with warnings.catch_warnings(), ablation(variant):
-                                warnings.simplefilter("ignore")  # missing landmarks are expected here
-                                res = tpscore.transfer(grid(source, "N_N_0", "neutral", variant),
-                                                       grid(source, code, "expressive", variant),
-                                                       grid(target, "N_N_0", "target", variant), au,
-                                                       options=variants[variant])
-                            pred, neutral, mask = res.vertices, res.neutral, res.mask
-                            for stage, seconds in res.timings.items():
-                                timings[f"{variant}: {stage}"].append(seconds)
-                        except ValueError as exc:
-                            print(f"  {variant} AU{au} {source}->{target}: {exc}", flush=True)
-                            neutral = np.where(tgt.mask[..., None], tgt.points, np.nan)
-                            pred, mask = np.full_like(neutral, np.nan), tgt.mask
-                        timings[f"transfer ({variant})"].append(time.perf_counter() - t0)
-                    score = scorer.score(pred, neutral, a_gt, b_gt, faces, mask=mask)
+                        score = done[name]
+                    score = {key: score_value(score, key) for key in SCORE_KEYS}
                     score.update(source=source, target=target)
                     results[(variant, au)].append(score)
         line = "  ".join(
@@ -250,12 +307,11 @@ def main(argv=None) -> int:
         three = 3 * np.mean(timings["load+resample"]) + np.mean(timings[f"transfer ({variant})"])
         lines.append(f"| {variant}: 3 scans loaded and resampled + transfer | {1e3 * three:.1f} ms |")
     if args.registration:
-        lines += ["", *registration_alone(tpscore, scorer, faces, scans, parse_subjects(args.registration),
+        lines += ["", *registration_alone(tpscore, score_with_sidecars, faces, scans, parse_subjects(args.registration),
                                           args.aus)]
     table = "\n".join(lines)
     print(table)
     out.mkdir(parents=True, exist_ok=True)
-    stem = "fidelity" + "".join(scan_args).replace("--", "_")
     (out / f"{stem}.md").write_text(table + "\n")
     pairs = [dict(variant=variant, au=au, **{k: (v.item() if hasattr(v, "item") else v) for k, v in r.items()})
              for (variant, au), rs in results.items() for r in rs]
@@ -263,7 +319,7 @@ def main(argv=None) -> int:
     return 0
 
 
-def registration_alone(tpscore, scorer, faces, scans, subjects, aus) -> list[str]:
+def registration_alone(tpscore, score_with_sidecars, faces, scans, subjects, aus) -> list[str]:
     """Rows scoring the registration alone: each subject's neutral grid moved by its
     registered field (mirror-averaged as the transfer does) against its own expressive
     scan, with the scans' images and with them withheld."""
@@ -291,12 +347,11 @@ def registration_alone(tpscore, scorer, faces, scans, subjects, aus) -> list[str
                         field = modelling.mirrored(field, neutral)
                 points = neutral.grid.points.reshape(-1, 3)
                 predicted = neutral.transform.apply_inverse(points + field(points)).reshape(neutral.grid.points.shape)
-                score = scorer.score(predicted, neutral.transform.apply_inverse(neutral.grid.points),
-                                     str(scan_path(scans, subject, "N_N_0")) + "_gt.npz",
-                                     str(scan_path(scans, subject, AU_CODES[au])) + "_gt.npz", faces,
-                                     mask=neutral.grid.mask)
+                score = score_with_sidecars(predicted, neutral.transform.apply_inverse(neutral.grid.points),
+                                            neutral.grid.mask, str(scan_path(scans, subject, "N_N_0")) + "_gt.npz",
+                                            str(scan_path(scans, subject, AU_CODES[au])) + "_gt.npz", faces)
                 ratios.append(score["residual_ratio"])
-                leaks.append(score["leak_rms_mm"])
+                leaks.append(score["leak_mm"])
             rows[(with_texture, au)] = (np.mean(ratios), np.mean(leaks))
     header = "| registration alone (subjects " + f"{subjects[0]}-{subjects[-1]}) | mean | " + \
         " | ".join(f"AU{au}" for au in aus) + " | leak mm |"

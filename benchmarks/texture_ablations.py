@@ -2,7 +2,9 @@
 registration term, for the fidelity benchmark to measure what that part is worth.
 
 They are baselines, not options: each patches the stage it undoes for the duration of a
-``with`` block, so the library keeps no switch for a variant that measured worse.
+``with`` block, so the library keeps no switch for a variant that measured worse. (The
+consistency check and the rim check are real TextureOptions fields; fidelity.py sets
+them off as option variants.)
 """
 from __future__ import annotations
 
@@ -16,31 +18,9 @@ from tpscore.geometry import robust_scale, tukey_weights
 from tpscore.expression import texture
 
 
-def _without_consistency_check():
-    """Keep every match that starts and lands on the surface, consistent or not."""
-    original = texture.TextureOptions.__init__
-
-    def init(self, *args, **kwargs):
-        original(self, *args, **kwargs)
-        object.__setattr__(self, "consistency_px", np.inf)
-
-    return mock.patch.object(texture.TextureOptions, "__init__", init)
-
-
 def _without_texture_strength():
     """Every kept match at full confidence, whatever the texture under it."""
     return mock.patch.object(texture, "_texture_strength", lambda pattern, sigma: np.full_like(pattern, 1e6))
-
-
-def _without_rim_check():
-    """Matches may start or land on the rim of a hole or of the scan."""
-    original = texture.TextureOptions.__init__
-
-    def init(self, *args, **kwargs):
-        original(self, *args, **kwargs)
-        object.__setattr__(self, "rim_px", 0)
-
-    return mock.patch.object(texture.TextureOptions, "__init__", init)
 
 
 def _without_shading_removal():
@@ -114,9 +94,7 @@ def _farneback_flow():
 
 
 ABLATIONS = {
-    "no-consistency-check": _without_consistency_check,
     "no-texture-strength": _without_texture_strength,
-    "no-rim-check": _without_rim_check,
     "no-shading-removal": _without_shading_removal,
     "no-common-rendering": _without_common_rendering,
     "full-point-pull": _full_point_pull,

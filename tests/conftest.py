@@ -24,3 +24,18 @@ def shared():
     if path is None:
         pytest.skip("needs ../shared (the ICT face model and scan tools); set TPSCORE_SHARED")
     return path
+
+
+@pytest.fixture(scope="session")
+def chromium():
+    """The path of a headless-capable Chromium: Debian's `chromium`, installed with
+    apt-get on first use when it is missing and this runs as root (set
+    TPSCORE_NO_BROWSER_INSTALL to forbid that); the test skips where none can be had."""
+    from headless_browser import find_chromium, install_chromium
+
+    path = find_chromium() or install_chromium()
+    if path is None:
+        pytest.skip("needs a headless Chromium (Debian package 'chromium'): not installed, and apt-get "
+                    "could not install it here (not root, no apt-get, no network to the Debian "
+                    "mirrors, or TPSCORE_NO_BROWSER_INSTALL set)")
+    return path

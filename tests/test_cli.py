@@ -3,6 +3,7 @@ import sys
 
 import numpy as np
 import pytest
+import trimesh
 
 from tpscore import datasets
 from tpscore.face import io
@@ -27,7 +28,8 @@ def test_transfer_writes_every_output(scan_files, tmp_path, capsys):
     out = tmp_path / "result.npz"
     code = main(["transfer", "--source-neutral", str(a), "--source-expr", str(b), "--target", str(c),
                  "--au", "12", "--magnitude", "0.8", "--out", str(out), "--mesh", str(tmp_path / "r.obj"),
-                 "--png", str(tmp_path / "r.png"), "--gif", str(tmp_path / "r.gif"), "--truth", str(d)])
+                 "--png", str(tmp_path / "r.png"), "--gif", str(tmp_path / "r.gif"), "--truth", str(d),
+                 "--html", str(tmp_path / "r.html")])
     assert code == 0
     printed = capsys.readouterr().out
     assert "transferred AU12" in printed
@@ -46,6 +48,11 @@ def test_transfer_writes_every_output(scan_files, tmp_path, capsys):
     assert len(vertices_obj) == mask.sum() and len(faces_obj) > 0
     for picture in ("r.png", "r.gif"):
         assert (tmp_path / picture).stat().st_size > 1000
+    # the scans have no colour image: the page shows clay, the OBJ has no material
+    assert '"texture": null' in (tmp_path / "r.html").read_text()
+    assert not (tmp_path / "r.mtl").exists()
+    # progress: one line per stage of the transfer, each with its time
+    assert "measured the source's motion (" in printed and "wrote " + str(tmp_path / "r.html") in printed
 
 
 def test_errors_are_one_line_not_a_traceback(scan_files, tmp_path, capsys):
@@ -60,18 +67,61 @@ def test_errors_are_one_line_not_a_traceback(scan_files, tmp_path, capsys):
     assert "unknown action unit" in capsys.readouterr().err
 
 
-def test_demo_writes_meshes_and_pictures(tmp_path):
+def test_version(capsys):
+    import tpscore
+
+    with pytest.raises(SystemExit) as stopped:
+        main(["--version"])
+    assert stopped.value.code == 0
+    assert capsys.readouterr().out.strip() == f"tpscore {tpscore.__version__}"
+
+
+def test_transfer_of_coloured_scans_writes_colour(tmp_path, capsys):
+    # scans with colour images: the OBJ is textured by the target's image, the PLY
+    # carries its colours, the page holds its photograph
+    from tpscore import demo_faces
+
+    paths = [demo_faces.make_demo_scan(person, expression, seed=seed).write(tmp_path, name)
+             for person, expression, seed, name in ((0, None, 1, "a"), (0, {"4": 1.0}, 2, "b"), (1, None, 3, "c"))]
+    code = main(["transfer", "--source-neutral", str(paths[0]), "--source-expr", str(paths[1]),
+                 "--target", str(paths[2]), "--au", "4", "--mesh", str(tmp_path / "r.obj"),
+                 "--html", str(tmp_path / "r.html"), "--png", str(tmp_path / "r.png"), "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    # the texture is not the picture of --png, though both are named after "r"
+    assert (tmp_path / "r.mtl").is_file() and (tmp_path / "r_texture.png").is_file()
+    assert io.read_image(tmp_path / "r.png").shape[1] > 2000   # the side-by-side picture
+    target_image = io.read_image(paths[2].with_suffix(".png"))
+    textured = trimesh.load(str(tmp_path / "r.obj"), process=False)
+    assert np.array_equal(np.asarray(textured.visual.material.image.convert("RGB")), target_image)
+    assert main(["transfer", "--source-neutral", str(paths[0]), "--source-expr", str(paths[1]),
+                 "--target", str(paths[2]), "--au", "4", "--mesh", str(tmp_path / "r.ply"), "--quiet"]) == 0
+    coloured = trimesh.load(str(tmp_path / "r.ply"), process=False)
+    colours = coloured.visual.vertex_colors[:, :3].astype(float)
+    # skin: redder than blue nearly everywhere, and far from one flat colour
+    assert (colours[:, 0] > colours[:, 2]).mean() > 0.95 and colours.std(axis=0).mean() > 5
+    assert "data:image/png;base64," in (tmp_path / "r.html").read_text()
+
+
+def test_demo_writes_meshes_pictures_and_pages(tmp_path):
     out = tmp_path / "demo"
-    # the installed console script, as a user runs it
-    run = subprocess.run([sys.executable, "-m", "tpscore.cli", "demo", "--out", str(out), "--quiet"],
-                         capture_output=True, text=True, timeout=300)
+    # the installed command, as a user runs it
+    run = subprocess.run([sys.executable, "-m", "tpscore", "demo", "--out", str(out)],
+                         capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr
     for stem in ("au12", "au4", "sadness"):
-        for suffix in ("npz", "obj", "ply"):
-            assert (out / f"target_{stem}.{suffix}").stat().st_size > 1000
-        assert (out / f"transfer_{stem}.png").stat().st_size > 1000
-        assert (out / f"sweep_{stem}.gif").stat().st_size > 1000
-    assert (out / "scans" / "target_neutral.bnt").is_file()
+        for name in ("npz", "obj", "mtl", "ply"):
+            assert (out / f"target_{stem}.{name}").stat().st_size > 50
+        assert (out / f"target_{stem}_texture.png").stat().st_size > 1000
+        for name in (f"transfer_{stem}.png", f"sweep_{stem}.gif", f"result_{stem}.html"):
+            assert (out / name).stat().st_size > 1000
+        # the transfer is scored against the truth, and beats leaving the target neutral
+        line = next(line for line in run.stdout.splitlines() if f"{stem}: rms error" in line)
+        rms = float(line.split("rms error ")[1].split()[0])
+        noop = float(line.split("leaving the target neutral: ")[1].split()[0])
+        assert rms < 0.5 * noop, line
+    for name in ("source_neutral", "source_au12", "target_neutral"):
+        for suffix in ("bnt", "lm3", "png"):
+            assert (out / "scans" / f"{name}.{suffix}").is_file()
     # the physical skin: a fitted scan smiles, frowns and opens its jaw
     for stem in ("smile", "frown", "jaw"):
         assert (out / f"skin_{stem}.png").stat().st_size > 1000

@@ -245,3 +245,65 @@ def test_public_names_are_exported():
     for name in ("render_mesh", "render_grid", "heatmap_colors", "error_heatmap",
                  "side_by_side", "save_png", "save_gif", "fit_camera", "Camera"):
         assert name in render.__all__ and tpscore.render is render
+
+
+def _plane(n=40, size=100.0):
+    """An n x n grid on the plane z = 0 facing the viewer, rows from top to bottom."""
+    x, y = np.meshgrid(np.linspace(-size / 2, size / 2, n), np.linspace(size / 2, -size / 2, n))
+    points = np.stack([x, y, np.zeros_like(x)], axis=-1)
+    uv = np.stack([(x + size / 2) / size, (size / 2 - y) / size], axis=-1)   # v down, as a scan's
+    return points, uv
+
+
+def test_texture_is_painted_where_its_uv_says():
+    # the image's top left quarter is red, top right green, bottom left blue, bottom
+    # right white: the picture's quarters are those colours, lit
+    points, uv = _plane()
+    texture = np.zeros((64, 64, 3), dtype=np.uint8)
+    texture[:32, :32], texture[:32, 32:], texture[32:, :32], texture[32:, 32:] = (255, 0, 0), (0, 255, 0), \
+        (0, 0, 255), (255, 255, 255)
+    image = render_grid(points, texture=texture, uv=uv, width=200, height=200).astype(int)
+    quarters = {"top left": image[40:80, 40:80], "top right": image[40:80, 120:160],
+                "bottom left": image[120:160, 40:80], "bottom right": image[120:160, 120:160]}
+    dominant = {name: int(np.argmax(q.reshape(-1, 3).mean(axis=0))) for name, q in quarters.items()}
+    assert dominant == {"top left": 0, "top right": 1, "bottom left": 2, "bottom right": dominant["bottom right"]}
+    assert quarters["bottom right"].min() > 150                       # white, lit
+    assert quarters["top left"][..., 1:].max() < 20                   # pure red stays pure
+    # detail finer than the vertex spacing survives: a texture line one pixel wide
+    # between two vertices shows in the picture
+    striped = np.full((400, 400, 3), 255, dtype=np.uint8)
+    striped[:, 205] = 0   # between vertex columns (every 10 pixels of the texture)
+    lined = render_grid(_plane(n=41)[0], texture=striped, uv=_plane(n=41)[1], width=400, height=400)
+    assert lined[:, 180:230].min() < 120
+
+
+def test_texture_needs_uv_and_excludes_colours():
+    points, uv = _plane(n=5)
+    texture = np.zeros((8, 8, 3), dtype=np.uint8)
+    with pytest.raises(ValueError, match="needs uv"):
+        render_grid(points, texture=texture)
+    with pytest.raises(ValueError, match="not both"):
+        render_grid(points, texture=texture, uv=uv, colors=(1, 0, 0))
+    with pytest.raises(ValueError, match="only used with a texture"):
+        render_grid(points, uv=uv)
+
+
+def test_motion_map_draws_the_field_where_it_is():
+    # the right half of a plane moves 4 mm to the right, the left half stays: colour
+    # and arrows on the right only
+    points, _ = _plane(n=60)
+    motion = np.zeros_like(points)
+    motion[..., 0] = np.where(points[..., 0] > 5, 4.0, 0.0)
+    vertices, faces = grid_mesh(points)
+    picture = render.motion_map(vertices, faces, motion.reshape(-1, 3), width=400, height=330)
+    assert picture.shape == (330, 400, 3)
+    mesh_part = picture[:, :330].astype(int)
+    still, moving = mesh_part[60:270, 40:140], mesh_part[60:270, 190:290]
+    # dark purple where still, yellow (the top of the colour map) where moving
+    assert still[..., 2].mean() > still[..., 1].mean()
+    assert moving[..., 0].mean() > 150 and moving[..., 1].mean() > 150
+    # arrows are black, drawn on the moving half only
+    black = (mesh_part.sum(axis=2) < 60)
+    assert black[60:270, 40:140].sum() == 0 and black[60:270, 190:290].sum() > 50
+    with pytest.raises(ValueError, match="displacement must have shape"):
+        render.motion_map(vertices, faces, motion.reshape(-1, 3)[:10])

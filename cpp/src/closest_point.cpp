@@ -310,10 +310,13 @@ void closest_point_rows(const SurfaceView& surface, const PointsRef& queries, st
             // Push the children within reach (without branches: whether a child is
             // within reach is data the branch predictor cannot learn), then swap the
             // nearest to the top so that it is searched first.
+            // An empty slot's box is at +inf, but so is every box once a query is so far
+            // away that its squared distance overflows; the slot count, not the distance,
+            // keeps empty slots (whose child 0 is the root) off the stack.
             const int base = top;
             for (int c = 0; c < MeshSurface::kWide; ++c) {
                 stack[top] = Entry{node.child[c], d2[c]};
-                top += d2[c] <= best.squared_distance ? 1 : 0;  // empty slots are at +inf
+                top += (c < node.count && d2[c] <= best.squared_distance) ? 1 : 0;
             }
             int nearest = base;
             for (int i = base + 1; i < top; ++i) nearest = stack[i].d2 < stack[nearest].d2 ? i : nearest;

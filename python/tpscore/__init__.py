@@ -2,13 +2,14 @@
 
 The public API lives in the submodules and is re-exported here; the compiled
 kernels in ``tpscore._core`` are private. Procedural faces are in
-:mod:`tpscore.datasets` and headless rendering in :mod:`tpscore.render`.
+:mod:`tpscore.datasets`, the demo's faces in :mod:`tpscore.demo_faces`, headless
+rendering in :mod:`tpscore.render` and the browser page of a result in
+:mod:`tpscore.viewer`.
 """
 from __future__ import annotations
 
-from importlib import metadata as _metadata
-
-from . import datasets, physics, render
+from . import datasets, physics, render, viewer
+from ._version import __version__
 from .face import landmarks
 from ._threads import max_threads, num_threads, set_num_threads
 from .face.average_face import AverageFace, build_average_face, load_average_face
@@ -21,6 +22,7 @@ from .expression import (
     ExpressionModel,
     MirroredMotion,
     MotionOptions,
+    PersonMismatchWarning,
     RigidAlignment,
     TextureOptions,
     TransferOptions,
@@ -34,9 +36,19 @@ from .expression import (
     track_texture,
     transfer,
 )
-from .adaptation import AdaptationWarning, AdaptLevel, AdaptResult, Correspondences, adapt
-from .calibration import AxesCalibration, axes_calibration, calibrate
-from .correspondence import FeatureMesh, curvature_features
+from .adaptation import (
+    AdaptationWarning,
+    AdaptLevel,
+    AdaptOptions,
+    AdaptResult,
+    AxesCalibration,
+    Correspondences,
+    FeatureMesh,
+    adapt,
+    axes_calibration,
+    calibrate,
+    curvature_features,
+)
 from .csrbf import CSRBF, ConvergenceError, wendland
 from .elastic import ElasticFace, ElasticOptions, ExpressionSet, LinearMuscle, MuscleModel, SphincterMuscle
 from .face.io import (
@@ -62,14 +74,12 @@ from .mesh import (
 )
 from .face.normalise import FrameTransform, NormalisedFace, normalise_face, similarity_transform, thesis_affine_transform
 from .face.grid import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, resample_scan
+from .face.pose import ImplausibleLandmarksWarning, MirroredLandmarksError, ScanPose, scan_pose
 from .rbf import RBF, RBF_KERNELS, TPS
 from .sparse import PatternCholesky, SparseCholesky
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
+from . import batch  # after the methods it runs in batches
 
-try:
-    __version__ = _metadata.version("tpscore")
-except _metadata.PackageNotFoundError:  # imported from a source tree that was never installed
-    __version__ = "0+unknown"
 
 __all__ = [
     # kernels
@@ -99,6 +109,10 @@ __all__ = [
     "GridMesh",
     "LandmarkSnapWarning",
     "resample_scan",
+    "ScanPose",
+    "scan_pose",
+    "MirroredLandmarksError",
+    "ImplausibleLandmarksWarning",
     "load_scan",
     # expression transfer
     "ActionUnit",
@@ -129,16 +143,20 @@ __all__ = [
     "animate",
     "TransferResult",
     "transfer",
+    "PersonMismatchWarning",
     # submodules
+    "batch",
     "datasets",
     "physics",
     "render",
+    "viewer",
     # compactly supported RBF
     "CSRBF",
     "ConvergenceError",
     "wendland",
     # template adaptation
     "adapt",
+    "AdaptOptions",
     "AdaptResult",
     "AdaptLevel",
     "AdaptationWarning",

@@ -7,6 +7,8 @@ ValueError that names the argument and what is wrong with it.
 from __future__ import annotations
 
 import math
+import numbers
+import os
 
 import numpy as np
 
@@ -15,12 +17,34 @@ __all__ = [
     "as_values",
     "as_faces",
     "as_positive",
+    "as_array",
+    "as_real",
+    "as_count",
+    "as_path",
     "check_finite",
+    "check_real",
     "MAX_DENSE_ELEMENTS",
+    "MAX_COORDINATE",
 ]
 
 # A dense temporary larger than this (in float64 elements, 2 GiB) is refused or chunked.
 MAX_DENSE_ELEMENTS = 2**28
+
+#: Largest coordinate magnitude (mm) a kernel accepts. Millimetres that far out are
+#: quantised to 0.125 mm by float64 itself, so no face geometry survives there; and the
+#: kernels' squared distances and r^2 ln r^2 of such points stay finite, while beyond
+#: about 1e154 a squared distance overflows and a query answers NaN.
+MAX_COORDINATE = 1e15
+
+#: The largest C int: counts handed to the compiled core (leaf sizes, neighbours).
+MAX_C_INT = 2**31 - 1
+
+
+def check_real(array: np.ndarray, name: str) -> None:
+    """Refuse complex input: NumPy would cast it to float64, dropping the imaginary
+    part with only a warning."""
+    if np.iscomplexobj(array):
+        raise ValueError(f"{name} must be real numbers, got complex values (dtype {array.dtype})")
 
 
 def check_finite(array: np.ndarray, name: str) -> None:
@@ -40,25 +64,48 @@ def as_points(points, name: str = "points", *, dim: int = 3, allow_empty: bool =
 
     A single point of shape (dim,) is not accepted silently: callers pass (1, dim).
     """
-    try:
-        array = np.asarray(points, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be a numeric array of shape (n, {dim}): {exc}") from None
+    array = _as_float_array(points, name, f"a numeric array of shape (n, {dim})")
     if array.ndim != 2 or array.shape[1] != dim:
         raise ValueError(f"{name} must have shape (n, {dim}), got {array.shape}")
     if not allow_empty and len(array) == 0:
         raise ValueError(f"{name} is empty; at least one point is needed")
-    if finite:
-        check_finite(array, name)
+    if finite and array.size:
+        # Two reductions without temporaries; NaN fails both comparisons.
+        if not (array.max() <= MAX_COORDINATE and array.min() >= -MAX_COORDINATE):
+            check_finite(array, name)
+            row = int(np.flatnonzero((np.abs(array) > MAX_COORDINATE).any(axis=1))[0])
+            raise ValueError(
+                f"{name} has coordinates beyond +-{MAX_COORDINATE:.0e} mm (first at row {row}: "
+                f"{array[row].tolist()}); tpscore works in millimetres")
     return np.ascontiguousarray(array)
+
+
+def as_array(values, name: str) -> np.ndarray:
+    """`values` as a float64 array of any shape; ValueError naming `name` for complex
+    or non-numeric input (shape and finiteness are the caller's to check)."""
+    return _as_float_array(values, name, "numeric")
+
+
+def _as_float_array(values, name: str, what: str) -> np.ndarray:
+    """`values` as a float64 array, refusing complex and non-numeric input."""
+    try:
+        raw = np.asarray(values)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be {what}: {exc}") from None
+    check_real(raw, name)
+    if raw.dtype == object:
+        # A list mixing Python complex numbers and floats arrives as an object array.
+        if any(isinstance(v, complex) for v in raw.reshape(-1)):
+            raise ValueError(f"{name} must be real numbers, got complex values")
+    try:
+        return np.asarray(raw, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be {what}: {exc}") from None
 
 
 def as_values(values, n: int, name: str = "values") -> np.ndarray:
     """Convert per-point values to a C-contiguous (n, k) float64 array (1-D becomes (n, 1))."""
-    try:
-        array = np.asarray(values, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be numeric: {exc}") from None
+    array = _as_float_array(values, name, "numeric")
     if array.ndim == 1:
         array = array[:, None]
     if array.ndim != 2 or array.shape[0] != n:
@@ -70,6 +117,7 @@ def as_values(values, n: int, name: str = "values") -> np.ndarray:
 def as_faces(faces, n_vertices: int, name: str = "faces") -> np.ndarray:
     """Convert triangles to a C-contiguous (m, 3) int64 array of valid vertex indices."""
     array = np.asarray(faces)
+    check_real(array, name)
     if array.ndim != 2 or array.shape[1] != 3:
         raise ValueError(f"{name} must have shape (m, 3), got {array.shape}")
     if array.size and not np.issubdtype(array.dtype, np.integer):
@@ -84,16 +132,67 @@ def as_faces(faces, n_vertices: int, name: str = "faces") -> np.ndarray:
     return array
 
 
-def as_positive(value, name: str, *, allow_zero: bool = False) -> float:
-    """A finite scalar > 0 (or >= 0 with allow_zero)."""
+def as_real(value, name: str, *, low: float = -math.inf, high: float = math.inf) -> float:
+    """A finite real scalar in [low, high]; ValueError naming `name` otherwise.
+
+    Strings are refused even when they spell a number: a number that arrives as text
+    is a caller's parsing slip, and float("nan") or float("1e999") would slip through.
+    """
+    if isinstance(value, (str, bytes, bool, np.bool_)) or isinstance(value, (complex, np.complexfloating)):
+        raise ValueError(f"{name} must be a real number, got {value!r:.80}")
     try:
         number = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
+        raise ValueError(f"{name} must be a real number, got {value!r:.80}") from None
+    if not math.isfinite(number):
+        raise ValueError(f"{name} must be finite, got {value!r:.80}")
+    if not low <= number <= high:
+        raise ValueError(f"{name} must lie in [{low:g}, {high:g}], got {value!r:.80}")
+    return number
+
+
+def as_positive(value, name: str, *, allow_zero: bool = False) -> float:
+    """A finite scalar > 0 (or >= 0 with allow_zero)."""
+    if isinstance(value, (str, bytes, bool, np.bool_)) or isinstance(value, (complex, np.complexfloating)):
+        raise ValueError(f"{name} must be a number, got {value!r:.80}")
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r:.80}") from None
     if not math.isfinite(number) or number < 0 or (number == 0 and not allow_zero):
         bound = ">= 0" if allow_zero else "> 0"
-        raise ValueError(f"{name} must be finite and {bound}, got {value!r}")
+        raise ValueError(f"{name} must be finite and {bound}, got {value!r:.80}")
     return number
+
+
+def as_count(value, name: str, *, least: int = 1, most: int = MAX_C_INT) -> int:
+    """A whole number in [least, most]; ValueError naming `name` otherwise (bools,
+    floats such as 2.0 and strings are refused)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
+        raise ValueError(f"{name} must be an integer >= {least}, got {value!r:.80}")
+    count = int(value)
+    if count < least:
+        raise ValueError(f"{name} must be >= {least}, got {count}")
+    if count > most:
+        raise ValueError(f"{name} must be at most {most}, got {count}")
+    return count
+
+
+def as_path(path, name: str = "path") -> str:
+    """A file-system path as text; ValueError for None, numbers and other non-paths
+    (open() would raise a TypeError that does not say which argument)."""
+    if isinstance(path, bytes):
+        path = os.fsdecode(path)
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"{name} must be a file path (str or os.PathLike), got {path!r:.80}")
+    text = os.fspath(path)
+    if isinstance(text, bytes):
+        text = os.fsdecode(text)
+    if not text:
+        raise ValueError(f"{name} is an empty path")
+    if "\x00" in text:
+        raise ValueError(f"{name} {text!r} contains a NUL character")
+    return text
 
 
 def check_options(options, *, positive=(), non_negative=(), counts=(), flags=(), choices=None) -> None:

@@ -21,7 +21,7 @@ import numbers
 import numpy as np
 
 from . import _core
-from ._validation import as_points, as_positive, as_values
+from ._validation import as_array, as_points, as_positive, as_values
 
 __all__ = ["CSRBF", "ConvergenceError", "wendland"]
 
@@ -45,7 +45,7 @@ def wendland(r):
     ndarray
         phi(r), same shape as ``r``; phi(0) = 1, phi(r >= 1) = 0.
     """
-    r = np.asarray(r, dtype=np.float64)
+    r = as_array(r, "r")
     return np.where(r < 1, (1 - r) ** 4 * (4 * r + 1), 0.0)
 
 

@@ -1,15 +1,21 @@
 """Small geometric and statistical helpers that every method shares: a mesh's edges and
-adjacency, and the robust weights of the iterative fits (ICP, registration, adaptation).
+adjacency, the robust weights of the iterative fits (ICP, registration, adaptation), and
+affine maps between frames with the least-squares similarity that fits them.
 
 Normals come from the compiled mesh operators (:func:`tpscore.mesh.face_normals`,
 :func:`tpscore.mesh.vertex_normals`), closest points from :class:`tpscore.MeshSurface`.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["mesh_edges", "vertex_adjacency", "robust_scale", "tukey_weights", "off_surface"]
+from ._validation import as_array, as_points
+
+__all__ = ["mesh_edges", "vertex_adjacency", "robust_scale", "tukey_weights", "off_surface", "FrameTransform",
+           "paired_points", "similarity_transform"]
 
 # The median absolute deviation times this is the standard deviation of a normal
 # distribution: the robust scales below are in the units of a standard deviation.
@@ -57,3 +63,111 @@ def off_surface(along, distances) -> np.ndarray:
     its normal (``along``: the offset's component along the normal at the closest point;
     ``distances``: the offsets' lengths, mm). Such pairs say nothing about the surface."""
     return np.abs(along) < 0.8 * np.asarray(distances) - 0.05
+
+
+@dataclass(frozen=True)
+class FrameTransform:
+    """An affine map between two frames, as a 4 x 4 homogeneous matrix.
+
+    ``apply`` maps points from the source frame (e.g. the scan) to the target frame
+    (e.g. the reference face); ``apply_inverse`` maps them back.
+    """
+
+    matrix: np.ndarray
+    method: str = "affine"
+
+    def __post_init__(self):
+        m = np.array(as_array(self.matrix, "matrix"), dtype=np.float64)
+        if m.shape != (4, 4) or not np.isfinite(m).all():
+            raise ValueError(f"matrix must be a finite 4 x 4 array, got shape {m.shape}")
+        if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
+            raise ValueError("matrix must be affine: its last row must be [0, 0, 0, 1]")
+        if abs(np.linalg.det(m[:3, :3])) < 1e-12:
+            raise ValueError("matrix is singular: the transform collapses space")
+        m.setflags(write=False)
+        object.__setattr__(self, "matrix", m)
+
+    @classmethod
+    def identity(cls) -> "FrameTransform":
+        return cls(np.eye(4), "none")
+
+    @property
+    def scale(self) -> float:
+        """Mean linear scale factor (cube root of the determinant)."""
+        return float(abs(np.linalg.det(self.matrix[:3, :3])) ** (1.0 / 3.0))
+
+    def apply(self, points) -> np.ndarray:
+        """Map (..., 3) points into the target frame (NaN rows stay NaN)."""
+        p = as_array(points, "points")
+        return p @ self.matrix[:3, :3].T + self.matrix[:3, 3]
+
+    def apply_inverse(self, points) -> np.ndarray:
+        """Map (..., 3) points from the target frame back to the source frame."""
+        return self.inverse().apply(points)
+
+    def apply_vectors(self, vectors) -> np.ndarray:
+        """Map displacement vectors (no translation)."""
+        return np.asarray(vectors, dtype=np.float64) @ self.matrix[:3, :3].T
+
+    def inverse(self) -> "FrameTransform":
+        return FrameTransform(np.linalg.inv(self.matrix), self.method)
+
+    def then(self, other: "FrameTransform") -> "FrameTransform":
+        """The transform that applies ``self`` first, then ``other``."""
+        return FrameTransform(other.matrix @ self.matrix, f"{self.method}+{other.method}")
+
+
+def paired_points(source, target, name: str = "source", target_name: str = "target"):
+    """Two (n, 3) point sets as float64 and the rows finite in both."""
+    lm = as_points(source, name, finite=False)
+    ref = as_points(target, target_name, finite=False)
+    if lm.shape != ref.shape:
+        raise ValueError(f"{name} has shape {lm.shape} but {target_name} has {ref.shape}")
+    both = np.isfinite(lm).all(axis=1) & np.isfinite(ref).all(axis=1)
+    return lm, ref, both
+
+
+def similarity_transform(source, target, *, scale: bool = True, weights=None) -> FrameTransform:
+    """Least-squares similarity (rotation, optional uniform scale, translation) source -> target.
+
+    Parameters
+    ----------
+    source, target : (n, 3) array_like
+        Corresponding points (mm); rows with NaN in either are ignored.
+    scale : bool
+        Fit a uniform scale; False gives a rigid transform.
+    weights : (n,) array_like, optional
+        Non-negative weight per pair.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 3 usable pairs, or pairs on one line (rotation undetermined).
+    """
+    src, dst, both = paired_points(source, target)
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64).ravel()
+    if w.shape != (len(src),) or not np.isfinite(w).all() or (w < 0).any():
+        raise ValueError(f"weights must be {len(src)} finite non-negative numbers")
+    use = both & (w > 0)
+    if use.sum() < 3:
+        raise ValueError(
+            f"a similarity transform needs at least 3 landmark pairs present in both faces, "
+            f"got {int(use.sum())}"
+        )
+    src, dst, w = src[use], dst[use], w[use] / w[use].sum()
+    mu_s, mu_d = w @ src, w @ dst
+    xs, xd = src - mu_s, dst - mu_d
+    cov = (xd * w[:, None]).T @ xs
+    u, sing, vt = np.linalg.svd(cov)
+    if sing[1] < 1e-9 * max(sing[0], 1e-300):
+        raise ValueError("the landmark pairs lie on one line: the rotation is undetermined")
+    d = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        d[2, 2] = -1.0  # a reflection is not a pose: flip the weakest axis instead
+    rotation = u @ d @ vt
+    var_s = float((w * (xs**2).sum(axis=1)).sum())
+    s = float(np.trace(np.diag(sing) @ d) / var_s) if scale else 1.0
+    m = np.eye(4)
+    m[:3, :3] = s * rotation
+    m[:3, 3] = mu_d - s * rotation @ mu_s
+    return FrameTransform(m, "similarity" if scale else "rigid")

@@ -26,7 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import _core
-from ._validation import as_faces, as_points
+from ._validation import as_array, as_faces, as_points
 from .spatial import MeshSurface
 
 __all__ = [
@@ -255,7 +255,7 @@ def height_field_remesh(vertices, faces, centre, *, shape=(150, 150), crop_mm: f
     """
 
     vertices, faces = _mesh(vertices, faces)
-    centre = np.asarray(centre, dtype=np.float64).reshape(3)
+    centre = as_array(centre, "centre").reshape(3)
     rows, cols = shape
     near = np.linalg.norm(vertices - centre, axis=1) <= crop_mm
     cropped = faces[near[faces].all(axis=1)]

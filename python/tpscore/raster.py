@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import _core
-from ._validation import as_faces, as_points, check_finite
+from ._validation import as_array, as_faces, as_points, check_finite
 
 __all__ = ["rasterise", "interpolate_pixels", "MAX_RASTER_PIXELS"]
 
@@ -42,7 +42,7 @@ def rasterise(pixels, depth, faces, width: int, height: int):
         Weights of the centre on that triangle's corners (0 where no triangle).
     """
     pixels = as_points(pixels, "pixels", dim=2)
-    depth = np.ascontiguousarray(depth, dtype=np.float64).reshape(-1)
+    depth = np.ascontiguousarray(as_array(depth, "depth")).reshape(-1)
     if depth.shape != (len(pixels),):
         raise ValueError(f"depth must have shape ({len(pixels)},), got {np.shape(depth)}")
     check_finite(depth, "depth")
@@ -73,11 +73,11 @@ def interpolate_pixels(values, faces, triangle, barycentric) -> np.ndarray:
     -------
     (h, w) or (h, w, c) float64 array, NaN where no triangle covers the pixel.
     """
-    array = np.asarray(values, dtype=np.float64)
+    array = as_array(values, "values")
     flat = array.reshape(len(array), -1) if array.ndim else array.reshape(0, 1)
     faces = as_faces(faces, len(flat), "faces")
     triangle = np.asarray(triangle)
-    barycentric = np.asarray(barycentric, dtype=np.float64)
+    barycentric = as_array(barycentric, "barycentric")
     if not np.issubdtype(triangle.dtype, np.integer) or barycentric.shape != triangle.shape + (3,):
         raise ValueError(f"triangle (h, w) of integers and barycentric (h, w, 3) must come from rasterise, "
                          f"got {triangle.dtype} {triangle.shape} and {barycentric.shape}")

@@ -39,6 +39,8 @@ kernel is half of ours: ``smoothing=s`` here is SciPy's ``smoothing=s / 2``.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from . import _core
@@ -67,6 +69,34 @@ FLATNESS_RELATIVE_TOLERANCE = 1e-8
 # [1 x y z] has 4 unknowns per value column, and a thin-plate spline needs at least
 # one radial degree of freedom beyond them.
 MIN_CENTRES = 5
+#: The most centres of a dense fit: its n x n kernel matrix stays within the dense-array
+#: budget (16,384 centres: 2 GiB). Beyond it the fit would also take minutes; the
+#: compactly supported :class:`tpscore.CSRBF` solves a sparse system instead.
+MAX_DENSE_CENTRES = math.isqrt(MAX_DENSE_ELEMENTS)
+
+
+def _gib(n_bytes: float) -> str:
+    return f"{n_bytes / 2**30:.1f} GiB"
+
+
+def _check_dense_size(n: int) -> None:
+    """Refuse, before anything is allocated, a dense fit whose matrix is too large."""
+    if n > MAX_DENSE_CENTRES:
+        raise ValueError(
+            f"centres: a dense RBF fit of {n} centres needs an {n} x {n} matrix "
+            f"({_gib(8.0 * n * n)}, and up to three times that when the system is not "
+            f"definite); tpscore fits at most {MAX_DENSE_CENTRES} centres densely. Use "
+            "tpscore.CSRBF (compact support, a sparse system) for large point sets")
+
+
+def _check_evaluated(result: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """Refuse a result that overflowed: rather an error than NaN handed back."""
+    if not np.isfinite(result).all():
+        row = int(np.flatnonzero(~np.isfinite(result).all(axis=1))[0])
+        raise ValueError(
+            f"points row {row} ({queries[row].tolist()}): the interpolant's value "
+            "overflows float64 there; the point is too far from the centres")
+    return result
 
 
 def _read_only(array: np.ndarray) -> np.ndarray:
@@ -189,9 +219,14 @@ class RBF:
     Raises
     ------
     ValueError
-        Unknown kernel, bad epsilon or smoothing, wrong shapes, NaN or infinite
-        input, fewer than 5 centres, coincident centres (naming their indices),
-        coplanar or collinear centres, or a numerically singular system.
+        Unknown kernel, bad epsilon or smoothing, wrong shapes, complex, NaN or
+        infinite input, coordinates beyond +-1e15 mm, fewer than 5 or more than
+        :data:`MAX_DENSE_CENTRES` centres (use :class:`tpscore.CSRBF`), coincident
+        centres (naming their indices), coplanar or collinear centres, or a
+        numerically singular system; and, when evaluated, a point so far from the
+        centres that the value overflows.
+    MemoryError
+        The machine cannot give the n x n matrix; the message says how much it needs.
 
     Notes
     -----
@@ -228,11 +263,18 @@ class RBF:
     def _fit(self, centres: np.ndarray, values: np.ndarray, kernel: str, smoothing: float,
              epsilon: float) -> None:
         """Fit validated, C-contiguous float64 centres (n, 3) and values (n, k)."""
+        _check_dense_size(len(centres))
         _check_geometry(centres, allow_coincident=smoothing > 0)
         try:
             model = _core.rbf_fit(centres, values, RBF_KERNELS[kernel], epsilon, smoothing)
         except ValueError as exc:
             raise ValueError(f"cannot fit the {kernel} RBF: {exc}") from None
+        except MemoryError:
+            n = len(centres)
+            raise MemoryError(
+                f"a dense RBF fit of {n} centres needs about {_gib(8.0 * n * n)} of memory "
+                f"(up to {_gib(24.0 * n * n)}), more than the system could give; use "
+                "tpscore.CSRBF for large point sets") from None
         setter = object.__setattr__
         setter(self, "_model", model)
         setter(self, "_kernel", kernel)
@@ -268,7 +310,7 @@ class RBF:
         queries = as_points(points, "points")
         result = np.empty((len(queries), self._n_values))
         self._model.evaluate_into(queries, result)
-        return result
+        return _check_evaluated(result, queries)
 
     def displacement(self, points) -> np.ndarray:
         """Evaluate the displacement f(x) - x at query points (3 values only).
@@ -293,7 +335,7 @@ class RBF:
         queries = as_points(points, "points")
         result = np.empty((len(queries), 3))
         self._model.displacement_into(queries, result)
-        return result
+        return _check_evaluated(result, queries)
 
     def evaluation_matrix(self, points) -> np.ndarray:
         """The matrix E with ``E @ coefficients == f(points)``.
@@ -328,7 +370,7 @@ class RBF:
                 f"limit of {MAX_DENSE_ELEMENTS:.3g}; pass the points in chunks of at "
                 f"most {max(1, MAX_DENSE_ELEMENTS // columns)} rows")
         queries = as_points(points, "points")
-        return self._model.evaluation_matrix(queries)
+        return _check_evaluated(self._model.evaluation_matrix(queries), queries)
 
     # --- the fitted model -----------------------------------------------------------
     @property

@@ -3,7 +3,11 @@
 No display and no OpenGL: meshes are projected orthographically, looking down -z (the
 face looks toward +z, so the viewer sees it from the front with the subject's left on
 the viewer's right), rasterised with a z-buffer (:mod:`tpscore.raster`), and shaded with Lambert
-diffuse, Blinn-Phong specular and ambient light from interpolated vertex normals.
+diffuse, Blinn-Phong specular and ambient light from interpolated vertex normals. A
+surface is clay-coloured, coloured per vertex, or textured by a scan's colour image
+(looked up per pixel at the interpolated u,v, so the picture keeps the image's detail
+between the vertices). :func:`motion_map` draws a displacement field as colours and
+arrows on the face it moves.
 
 A :class:`Camera` fixes the view direction and the framing (centre and scale); build
 one with :func:`fit_camera` over several meshes so that side-by-side pictures line up.
@@ -11,12 +15,15 @@ Pillow writes PNG and animated GIF files and draws titles and colour bars.
 """
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
 
 import numpy as np
 from PIL import Image, ImageDraw
 
+from ._files import atomic_write
 from ._validation import as_faces, as_points
+from .face.image import as_colour_image, sample_image
 from .raster import rasterise
 
 __all__ = [
@@ -29,6 +36,7 @@ __all__ = [
     "heatmap_colors",
     "draw_colorbar",
     "error_heatmap",
+    "motion_map",
     "side_by_side",
     "save_png",
     "save_gif",
@@ -53,6 +61,12 @@ AMBIENT = 0.18
 DIFFUSE = 0.72
 SPECULAR = 0.12
 SHININESS = 24.0
+# A photograph's colours already hold the light of the scanner, so a textured surface
+# gets more ambient and less directional light than clay: enough shading to show the
+# shape from the new view, without darkening the photograph's own shadows twice.
+TEXTURE_AMBIENT = 0.5
+TEXTURE_DIFFUSE = 0.55
+TEXTURE_SPECULAR = 0.05
 MISSING_VALUE_COLOR = (0.6, 0.6, 0.6)
 FRAME_MARGIN = 0.06          # fraction of the picture left free around the framed meshes
 COLORBAR_WIDTH = 70
@@ -202,7 +216,7 @@ def _vertex_colors(colors, n_vertices: int) -> np.ndarray:
 
 def render_mesh(vertices, faces, *, width: int = 400, height: int = 400, view="front",
                 light=DEFAULT_LIGHT, colors=None, background=DEFAULT_BACKGROUND,
-                camera: Camera | None = None) -> np.ndarray:
+                camera: Camera | None = None, texture=None, uv=None) -> np.ndarray:
     """Render a triangle mesh to an RGB picture.
 
     Parameters
@@ -221,6 +235,11 @@ def render_mesh(vertices, faces, *, width: int = 400, height: int = 400, view="f
     background : RGB triple (0-255 or 0-1)
     camera : Camera, optional
         Shared framing from :func:`fit_camera`; by default the mesh is framed alone.
+    texture : (h, w, 3) uint8, optional
+        A colour image (a scan's photograph) to paint the surface with, instead of
+        `colors`; needs `uv`.
+    uv : (n, 2) array_like, optional
+        Each vertex's place in `texture` (u right, v down, in [0, 1]).
 
     Returns
     -------
@@ -235,6 +254,19 @@ def render_mesh(vertices, faces, *, width: int = 400, height: int = 400, view="f
         raise ValueError(f"light must be a non-zero direction (3,), got {light!r}")
     light_dir = light_dir / np.linalg.norm(light_dir)
     back = _as_color(background, "background")
+    if texture is not None:
+        if colors is not None:
+            raise ValueError("give colors or texture, not both")
+        if uv is None:
+            raise ValueError("texture needs uv, each vertex's place in the image")
+        texture = as_colour_image(texture, "texture")
+        texture_uv = np.asarray(uv, dtype=np.float64)
+        if texture_uv.shape != (len(points), 2) or not np.isfinite(texture_uv[finite]).all():
+            raise ValueError(f"uv must be ({len(points)}, 2) and finite at the finite vertices, "
+                             f"got shape {texture_uv.shape}")
+        texture_uv = np.where(np.isfinite(texture_uv), texture_uv, 0.0)
+    elif uv is not None:
+        raise ValueError("uv is only used with a texture")
     vertex_rgb = _vertex_colors(colors, len(points))
     if camera is None:
         camera = fit_camera([points[finite]], width=width, height=height, view=view)
@@ -255,12 +287,18 @@ def render_mesh(vertices, faces, *, width: int = 400, height: int = 400, view="f
         corners = triangles[tri]
         normal = np.einsum("kj,kjd->kd", bary, normals[corners])
         normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
-        albedo = np.einsum("kj,kjd->kd", bary, vertex_rgb[corners])
         diffuse = np.clip(normal @ light_dir, 0.0, 1.0)
         halfway = light_dir + np.array([0.0, 0.0, 1.0])
         halfway /= np.linalg.norm(halfway)
         specular = np.clip(normal @ halfway, 0.0, 1.0) ** SHININESS
-        shade = albedo * (AMBIENT + DIFFUSE * diffuse)[:, None] + SPECULAR * specular[:, None]
+        if texture is None:
+            albedo = np.einsum("kj,kjd->kd", bary, vertex_rgb[corners])
+            shade = albedo * (AMBIENT + DIFFUSE * diffuse)[:, None] + SPECULAR * specular[:, None]
+        else:
+            pixel_uv = np.einsum("kj,kjd->kd", bary, texture_uv[corners])
+            albedo = sample_image(texture, pixel_uv) / 255.0
+            shade = albedo * (TEXTURE_AMBIENT + TEXTURE_DIFFUSE * diffuse)[:, None] \
+                + TEXTURE_SPECULAR * specular[:, None]
         image[covered] = np.clip(shade, 0.0, 1.0)
     return np.round(image.reshape(camera.height, camera.width, 3) * 255).astype(np.uint8)
 
@@ -316,16 +354,20 @@ def grid_mesh(points, mask=None) -> tuple[np.ndarray, np.ndarray]:
 def render_grid(points, mask=None, **kwargs) -> np.ndarray:
     """Render a grid face (H, W, 3) with NaN or a mask; keyword arguments as render_mesh.
 
-    Per-vertex `colors` may be given on the grid, (H, W) or (H, W, 3).
+    Per-vertex `colors` may be given on the grid, (H, W) or (H, W, 3), and so may the
+    `uv` of a `texture`, (H, W, 2): a :class:`~tpscore.face.grid.FaceGrid` is drawn in
+    its own colours by ``render_grid(grid.points, grid.mask, texture=grid.image,
+    uv=grid.uv)``.
     """
     vertices, faces = grid_mesh(points, mask)
-    colors = kwargs.pop("colors", None)
-    if colors is not None:
-        colors = np.asarray(colors, dtype=np.float64)
-        if colors.shape[:2] == np.shape(points)[:2]:
-            # Per-vertex values given on the grid: flatten like the vertices.
-            colors = colors.reshape((len(vertices),) + colors.shape[2:])
-    return render_mesh(vertices, faces, colors=colors, **kwargs)
+    for name in ("colors", "uv"):
+        values = kwargs.get(name)
+        if values is not None:
+            values = np.asarray(values, dtype=np.float64)
+            if values.shape[:2] == np.shape(points)[:2]:
+                # Per-vertex values given on the grid: flatten like the vertices.
+                kwargs[name] = values.reshape((len(vertices),) + values.shape[2:])
+    return render_mesh(vertices, faces, **kwargs)
 
 
 def heatmap_colors(values, vmax: float | None = None, cmap: str = "viridis",
@@ -415,6 +457,92 @@ def error_heatmap(vertices, faces, errors_mm, *, vmax: float | None = None, widt
     return draw_colorbar(picture, vmin, vmax, cmap=cmap)
 
 
+def motion_map(vertices, faces, displacement, *, vmax: float | None = None, width: int = 400,
+               height: int = 400, view="front", camera: Camera | None = None,
+               arrow_spacing: int = 22, background=DEFAULT_BACKGROUND) -> np.ndarray:
+    """A displacement field on the face it moves: its size as colours, its direction as
+    arrows, with a colour bar.
+
+    Parameters
+    ----------
+    vertices : (n, 3) array_like, mm
+        The face at rest (NaN rows allowed).
+    faces : (m, 3) array_like of int
+    displacement : (n, 3) array_like, mm
+        Each vertex's motion (NaN where unknown: drawn grey, without an arrow).
+    vmax : float, optional
+        The size at the top of the colour bar (default the largest).
+    width, height, view, camera, background
+        As in :func:`error_heatmap` (the colour bar takes COLORBAR_WIDTH pixels).
+    arrow_spacing : int
+        Pixels between arrows. Arrows start at the vertex nearest each node of a
+        square lattice of this spacing and show the motion seen from the camera,
+        lengthened by one factor for the whole picture (written in its lower left
+        corner) so that the longest arrows are about as long as the spacing. Motion
+        under a tenth of the largest, and arrows shorter than 5 pixels, are not drawn.
+
+    Returns
+    -------
+    (height, width, 3) uint8
+    """
+    points = as_points(vertices, "vertices", finite=False)
+    motion = np.asarray(displacement, dtype=np.float64)
+    if motion.shape != points.shape:
+        raise ValueError(f"displacement must have shape {points.shape}, like vertices; got {motion.shape}")
+    if isinstance(arrow_spacing, bool) or not isinstance(arrow_spacing, (int, np.integer)) \
+            or not 4 <= arrow_spacing <= 200:
+        raise ValueError(f"arrow_spacing must be an integer in [4, 200] pixels, got {arrow_spacing!r}")
+    size = np.linalg.norm(motion, axis=1)
+    known = np.isfinite(size) & np.isfinite(points).all(axis=1)
+    if vmax is None:
+        vmax = float(size[known].max()) if known.any() else 1.0
+    if not (np.isfinite(vmax) and vmax > 0):
+        vmax = 1.0
+    width, height = _check_size(width, height)
+    if camera is None:
+        camera = fit_camera([points[known]], width=max(width - COLORBAR_WIDTH, 1), height=height, view=view)
+    colors = heatmap_colors(np.where(known, size, np.nan), vmax=vmax, vmin=0.0)
+    picture = render_mesh(points, faces, colors=colors, camera=camera, background=background)
+
+    start = camera.to_pixels(camera.to_view(np.where(known[:, None], points, 0.0)))
+    shift = camera.to_view(np.where(known[:, None], motion, 0.0))[:, :2] * camera.scale * [1.0, -1.0]
+    shown = known & (size > 0.1 * vmax)
+    canvas = _to_pil(np.ascontiguousarray(picture))
+    draw = ImageDraw.Draw(canvas)
+    if shown.any():
+        # one arrow per lattice cell: the vertex nearest the cell's centre
+        cell = np.floor(start[shown] / arrow_spacing).astype(np.int64)
+        centre = (cell + 0.5) * arrow_spacing
+        candidates = np.flatnonzero(shown)
+        order = np.lexsort((np.linalg.norm(start[shown] - centre, axis=1), cell[:, 1], cell[:, 0]))
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = (np.diff(cell[order], axis=0) != 0).any(axis=1)
+        chosen = candidates[order[first]]
+        longest = np.percentile(np.linalg.norm(shift[chosen], axis=1), 95)
+        gain = 0.9 * arrow_spacing / longest if longest > 0 else 1.0
+        for k in chosen:
+            _arrow(draw, start[k], start[k] + gain * shift[k])
+        draw.text((6, camera.height - 16), f"arrows {gain:.1f}x the motion", fill=(0, 0, 0))
+    return draw_colorbar(np.asarray(canvas), 0.0, vmax)
+
+
+def _arrow(draw, tail, head) -> None:
+    """A black arrow with a light halo, so it shows on every colour of the map."""
+    vector = np.asarray(head) - np.asarray(tail)
+    length = float(np.hypot(*vector))
+    if length < 5.0:   # shorter arrows are blots, not directions
+        return
+    direction = vector / length
+    barb = min(5.0, 0.4 * length)
+    normal = np.array([-direction[1], direction[0]])
+    wings = [tuple(head - barb * direction + side * 0.6 * barb * normal) for side in (1, -1)]
+    line = [tuple(tail), tuple(head)]
+    for colour, line_width in (((255, 255, 255), 3), ((0, 0, 0), 1)):
+        draw.line(line, fill=colour, width=line_width)
+        for wing in wings:
+            draw.line([tuple(head), wing], fill=colour, width=line_width)
+
+
 def side_by_side(images, titles=None, *, title_height: int = 24, gap: int = 6,
                  background=DEFAULT_BACKGROUND) -> np.ndarray:
     """Place pictures left to right (top-aligned) with a title above each."""
@@ -448,8 +576,10 @@ def side_by_side(images, titles=None, *, title_height: int = 24, gap: int = 6,
 
 
 def save_png(path, image) -> None:
-    """Write an (H, W, 3) uint8 picture as PNG."""
-    _to_pil(image).save(path, format="PNG")
+    """Write an (H, W, 3) uint8 picture as PNG (atomically: all of it or nothing)."""
+    buffer = io.BytesIO()
+    _to_pil(image).save(buffer, format="PNG")
+    atomic_write(path, buffer.getvalue())
 
 
 def save_gif(path, frames, fps: float = 12.0) -> None:
@@ -467,5 +597,7 @@ def save_gif(path, frames, fps: float = 12.0) -> None:
         raise ValueError(f"fps must be finite and > 0, got {fps!r}")
 
     paletted = [p.convert("P", palette=Image.Palette.ADAPTIVE, colors=256) for p in pictures]
-    paletted[0].save(path, format="GIF", save_all=True, append_images=paletted[1:],
+    buffer = io.BytesIO()
+    paletted[0].save(buffer, format="GIF", save_all=True, append_images=paletted[1:],
                      duration=int(round(1000.0 / rate)), loop=0, optimize=False)
+    atomic_write(path, buffer.getvalue())

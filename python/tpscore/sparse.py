@@ -13,7 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import _core
-from ._validation import check_finite
+from ._validation import as_array, as_positive, check_finite
 
 __all__ = ["PatternCholesky", "SparseCholesky", "grid_nested_dissection"]
 
@@ -23,13 +23,48 @@ __all__ = ["PatternCholesky", "SparseCholesky", "grid_nested_dissection"]
 _PIVOT_TOLERANCE = 1e-13
 
 
+def _singular_values_hint(lower) -> str:
+    """Where in the matrix a zero pivot comes from, when it can be seen from the values:
+    an all-zero row, a zero diagonal entry, or two equal rows."""
+    lower = sp.csc_matrix(lower)
+    full = (lower + sp.tril(lower, -1, format="csc").T).tocsr()
+    full.eliminate_zeros()
+    counts = np.diff(full.indptr)
+    if (counts == 0).any():
+        row = int(np.flatnonzero(counts == 0)[0])
+        return f"row and column {row} are all zero ({int((counts == 0).sum())} such row(s))"
+    diagonal = full.diagonal()
+    if (diagonal == 0).any():
+        row = int(np.flatnonzero(diagonal == 0)[0])
+        return f"the diagonal entry [{row}, {row}] is 0 ({int((diagonal == 0).sum())} such entries)"
+    seen: dict[tuple, int] = {}
+    for row in range(full.shape[0]):
+        start, end = full.indptr[row], full.indptr[row + 1]
+        key = (full.indices[start:end].tobytes(), full.data[start:end].tobytes())
+        if key in seen:
+            return f"rows {seen[key]} and {row} are equal"
+        seen[key] = row
+    return "its rows are linearly dependent"
+
+
+def _factorise(build, lower, name: str):
+    """Run a compiled factorisation, naming what in the values makes it singular.
+
+    ``lower`` gives the lower triangle, on demand: only a failure needs it.
+    """
+    try:
+        return build()
+    except ValueError as exc:
+        if "zero pivot" not in str(exc):
+            raise
+        raise ValueError(f"{name} is singular: its LDL^T factorisation met an exactly zero pivot; "
+                         f"{_singular_values_hint(lower())}") from None
+
+
 def _as_symmetric_csc_lower(matrix, name: str, symmetry_tolerance: float):
     """The lower triangle of a validated square, symmetric, finite sparse matrix as CSC."""
     if not sp.issparse(matrix):
-        try:
-            dense = np.asarray(matrix, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{name} must be a scipy.sparse matrix or a numeric 2-D array: {exc}") from None
+        dense = as_array(matrix, name)
         if dense.ndim != 2:
             raise ValueError(f"{name} must be 2-D, got shape {dense.shape}")
         matrix = sp.csc_matrix(dense)
@@ -87,15 +122,17 @@ class SparseCholesky:
     """
 
     def __init__(self, matrix, *, symmetry_tolerance: float = 1e-10):
-        lower = _as_symmetric_csc_lower(matrix, "matrix", float(symmetry_tolerance))
+        # NaN would make every comparison false and switch the symmetry check off.
+        tolerance = as_positive(symmetry_tolerance, "symmetry_tolerance", allow_zero=True)
+        lower = _as_symmetric_csc_lower(matrix, "matrix", tolerance)
         self._n = lower.shape[0]
-        self._factor = _core.SparseCholesky(
+        self._factor = _factorise(lambda: _core.SparseCholesky(
             self._n,
             np.ascontiguousarray(lower.indptr, dtype=np.int64),
             np.ascontiguousarray(lower.indices, dtype=np.int64),
             np.ascontiguousarray(lower.data, dtype=np.float64),
             _PIVOT_TOLERANCE,
-        )
+        ), lambda: lower, "matrix")
 
     @property
     def n(self) -> int:
@@ -133,10 +170,7 @@ class SparseCholesky:
 
 def _solve(factor, n: int, rhs) -> np.ndarray:
     """Validate ``rhs`` ((n,) or (n, k), finite) and solve with a compiled factor."""
-    try:
-        array = np.asarray(rhs, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"rhs must be numeric: {exc}") from None
+    array = as_array(rhs, "rhs")
     vector = array.ndim == 1
     if vector:
         array = array[:, None]
@@ -243,6 +277,7 @@ class PatternCholesky:
         self._method = method
         indptr = np.ascontiguousarray(indptr, dtype=np.int64)
         indices = np.ascontiguousarray(indices, dtype=np.int64)
+        self._pattern = (indptr, indices)  # to say where a singular matrix's zero pivot comes from
         if method == "simplicial":
             self._factor = _core.SimplicialPatternCholesky(n, indptr, indices)
         elif ordering is None:
@@ -281,14 +316,13 @@ class PatternCholesky:
             If the values are not finite or of the wrong length, or the matrix is not
             positive definite (as for :class:`SparseCholesky`). No factor is kept then.
         """
-        try:
-            array = np.ascontiguousarray(values, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"values must be numeric: {exc}") from None
+        array = np.ascontiguousarray(as_array(values, "values"))
         if array.shape != (self._entries,):
             raise ValueError(f"values must have shape ({self._entries},), got {array.shape}")
         check_finite(array, "values")
-        self._factor.factorize(array, _PIVOT_TOLERANCE)
+        _factorise(lambda: self._factor.factorize(array, _PIVOT_TOLERANCE),
+                   lambda: sp.csc_matrix((array, self._pattern[1], self._pattern[0]),
+                                         shape=(self._n, self._n)), "the matrix")
 
     @property
     def factorised(self) -> bool:

@@ -12,7 +12,7 @@ from typing import NamedTuple
 import numpy as np
 
 from . import _core
-from ._validation import MAX_DENSE_ELEMENTS, as_faces, as_points
+from ._validation import MAX_DENSE_ELEMENTS, as_count, as_faces, as_points
 
 __all__ = [
     "KDTree",
@@ -33,7 +33,11 @@ def _int64(array: np.ndarray) -> np.ndarray:
 
 
 def _workers(workers) -> int:
-    """The thread count passed to the core: -1 (all) becomes 0, the core's 'default'."""
+    """The thread count passed to the core: -1 (all) becomes 0, the core's 'default'.
+
+    Counts above :func:`tpscore.max_threads` mean that many, as for
+    :func:`tpscore.set_num_threads` (the core takes a C int and caps it there anyway).
+    """
     if isinstance(workers, (bool, np.bool_)) or not isinstance(workers, numbers.Integral):
         raise ValueError(f"workers must be an integer (-1 for all threads), got {workers!r}")
     workers = int(workers)
@@ -41,15 +45,7 @@ def _workers(workers) -> int:
         return 0
     if workers < 1:
         raise ValueError(f"workers must be -1 (all threads) or >= 1, got {workers}")
-    return workers
-
-
-def _positive_int(value, name: str) -> int:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
-        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-    if value < 1:
-        raise ValueError(f"{name} must be >= 1, got {value}")
-    return int(value)
+    return min(workers, _core.max_threads())
 
 
 def _radius(value, name: str = "r") -> float:
@@ -93,7 +89,7 @@ class KDTree:
         # A private copy: as_points may return the caller's own array, which must stay
         # writable for them and must not change under the tree.
         points = as_points(points, "points", allow_empty=False).copy()
-        self._leaf_size = _positive_int(leaf_size, "leaf_size")
+        self._leaf_size = as_count(leaf_size, "leaf_size")
         points.setflags(write=False)
         self._points = points
         self._tree = _core.KDTree(points, self._leaf_size)
@@ -140,7 +136,7 @@ class KDTree:
         and index ``n``, exactly as :meth:`scipy.spatial.cKDTree.query` reports them.
         """
         queries = as_points(points, "points")
-        k = _positive_int(k, "k")
+        k = as_count(k, "k")
         bound = _radius(distance_upper_bound, "distance_upper_bound")
         if len(queries) * k > MAX_DENSE_ELEMENTS:
             raise ValueError(

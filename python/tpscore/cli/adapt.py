@@ -11,6 +11,11 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from .. import render
+from ..adaptation import AdaptOptions, adapt
+from ..face import io
+from ..face.grid import FaceGrid
+
 __all__ = ["add_adapt_parser", "adapt_command"]
 
 
@@ -26,16 +31,11 @@ def add_adapt_parser(sub) -> None:
     p.add_argument("--calibration", choices=["similarity", "axes", "none"], default="similarity")
     p.add_argument("--rho", type=float, default=30.0, help="error coefficient of the global RBF (mm, default 30)")
     p.add_argument("--refinement", choices=["surface", "interpolate"], default="surface",
-                   help="surface: point-to-plane levels (default); interpolate: the method's ray pairs")
+                   help="surface: point-to-plane levels (default); interpolate: the published ray pairs")
     p.add_argument("--quiet", action="store_true")
 
 
 def adapt_command(args) -> int:
-    from .. import render
-    from ..face import io
-    from ..adaptation import adapt
-    from ..face.grid import FaceGrid
-
     start = time.perf_counter()
 
     def say(message: str) -> None:
@@ -68,9 +68,10 @@ def adapt_command(args) -> int:
         say(f"level {level.level} ({level.method}, {level.pairs} pairs): Ed {level.distance_error:.3f} mm^2, "
             f"coverage {level.coverage:.2f}")
 
+    options = AdaptOptions(levels=args.levels, calibration=args.calibration, rho=args.rho,
+                           refinement=args.refinement)
     result = adapt((template_vertices, template_faces), scan, template_landmarks, scan_landmarks,
-                   levels=args.levels, calibration=args.calibration, rho=args.rho,
-                   refinement=args.refinement, progress=progress)
+                   options=options, progress=progress)
     say(f"kept level {result.best_level}")
     io.write_mesh(args.out, result.vertices, template_faces)
     say(f"wrote {args.out}")

@@ -27,7 +27,9 @@ from pathlib import Path
 import numpy as np
 
 from .. import render
+from .._files import atomic_write
 from ..elastic import ElasticFace, ElasticOptions
+from ..face import io
 from ..mesh import height_field_remesh
 
 __all__ = ["add_elastic_parser", "elastic_command"]
@@ -56,14 +58,42 @@ def add_elastic_parser(subparsers) -> None:
 
 
 def _load_npz(path: str, fields: tuple[str, ...]) -> dict:
-    try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: cannot read: {exc}") from None
-    missing = [f for f in fields if f not in data]
-    if missing:
-        raise ValueError(f"{path}: lacks the field(s) {', '.join(missing)}")
-    return {key: data[key] for key in data.files}
+    return io.read_npz(path, fields, what="an elastic model input (.npz)")
+
+
+def _check_face_model(model: dict, path: str) -> None:
+    """The ICT face-area model's arrays, checked against each other before use (a forged
+    file would otherwise fail deep inside NumPy, or index out of range)."""
+    where = repr(str(path))
+
+    def fail(problem: str):
+        raise ValueError(f"{where}: not an ICT face-area model: {problem}")
+
+    def numeric(name: str, ndim: int, kind: str = "f"):
+        array = model[name]
+        if array.ndim != ndim or array.dtype.kind not in ("iu" if kind == "i" else "fiu"):
+            fail(f"{name} must be a {ndim}-D {'integer' if kind == 'i' else 'numeric'} array, "
+                 f"got shape {array.shape} and dtype {array.dtype}")
+        if kind == "f" and not np.isfinite(array).all():
+            fail(f"{name} has NaN or infinite values")
+        return array
+
+    neutral = numeric("neutral", 2)
+    n = len(neutral)
+    if neutral.shape[1:] != (3,) or n < 3:
+        fail(f"neutral must have shape (n, 3) with n >= 3, got {neutral.shape}")
+    faces = numeric("faces", 2, "i")
+    if faces.shape[1:] != (3,) or len(faces) == 0 or faces.min() < 0 or faces.max() >= n:
+        fail(f"faces must be (m, 3) indices into the {n} vertices")
+    for name in ("identity_modes", "expression_modes"):
+        modes = numeric(name, 3)
+        if modes.shape[1:] != (n, 3):
+            fail(f"{name} must have shape (k, {n}, 3), got {modes.shape}")
+    if model["expression_names"].shape != (len(model["expression_modes"]),):
+        fail(f"expression_names must name the {len(model['expression_modes'])} expression modes")
+    index = numeric("bosphorus_index", 1, "i")
+    if index.shape != (22,) or index.min() < 0 or index.max() >= n:
+        fail(f"bosphorus_index must be 22 vertex indices in [0, {n})")
 
 
 def _subject(model: dict, subject: int) -> np.ndarray:
@@ -82,6 +112,7 @@ def elastic_command(args) -> int:
     if args.face_model:
         model = _load_npz(args.face_model, ("neutral", "faces", "identity_modes", "expression_names",
                                             "expression_modes", "bosphorus_index"))
+        _check_face_model(model, args.face_model)
         faces = model["faces"].astype(np.int64)
         index = model["bosphorus_index"].astype(np.int64)
         source_neutral = _subject(model, args.source_subject)
@@ -124,8 +155,11 @@ def elastic_command(args) -> int:
     step(f"cloned onto the target ({len(target.vertices)} vertices)")
 
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OSError(exc.errno, f"cannot create the folder {str(out)!r}: {exc.strerror}") from None
+    io.write_npz(
         out / "elastic.npz", control_point_names=np.array(source.control_point_names),
         source_handles=source.handles, target_handles=target.handles, expression_names=np.array(names),
         source_parameters=learned.parameters, target_parameters=target.expressions.parameters,
@@ -137,7 +171,7 @@ def elastic_command(args) -> int:
               for n, m, r, x in zip(names, learned.motion_rms_mm, learned.rms_mm, learned.max_mm)]
     lines += ["", f"Storage: parameters + basis / per-vertex displacements = {storage['ratio']:.3f}; "
                   f"parameters only = {storage['ratio_parameters_only']:.4f}."]
-    (out / "report.md").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    atomic_write(out / "report.md", ("\n".join(lines) + "\n").encode("utf-8"))
     if not args.no_pictures:
         source_camera = render.fit_camera([source.vertices], width=320, height=380)
         target_camera = render.fit_camera([target.vertices], width=320, height=380)

@@ -1,11 +1,14 @@
 """The ``tpscore`` command line.
 
     tpscore transfer --source-neutral A --source-expr B --target C --au 12 [--magnitude 0.8]
-                     [--out result.npz] [--mesh result.obj] [--png result.png] [--gif sweep.gif]
+                     [--out result.npz] [--mesh result.obj|.ply] [--png result.png] [--gif sweep.gif]
+                     [--html result.html]
     tpscore demo [--out DIR]
+    tpscore --version
     tpscore build-afm [--out average_face.npz]
     tpscore elastic --face-model face_model.npz --out DIR   (fit and clone expressions)
     tpscore adapt TEMPLATE SCAN --template-landmarks T.lm3 --scan-landmarks S.lm3 --out fitted.obj
+    tpscore batch DIR --out OUT [--au 12 4] [--pairs next-2] [--scheduler tcp://host:8786]
     tpscore simulate SCAN --au 12:0.6 [--jaw 10] --out settled.npz [--gif smile.gif]   (physical skin)
 
 Errors are reported as one line on stderr (exit status 2), not as a traceback.
@@ -20,15 +23,18 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import render
-from ..expression import TransferOptions, align_rigid, transfer
+from .._version import __version__
+from ..batch.scores import surface_distances
+from ..expression import TransferOptions, transfer
 from ..face import io
 from ..face.average_face import afm_faces, build_average_face
 from ..face.grid import load_scan
-from ..spatial import MeshSurface
 from .adapt import add_adapt_parser, adapt_command
+from .arguments import grid_shape
+from .batch import add_batch_parser, batch_command
 from .demo import run_demo
 from .elastic import add_elastic_parser, elastic_command
+from .outputs import transfer_picture, write_result_mesh, write_result_page, write_sweep_gif
 from .simulate import add_simulate_parser, simulate_command
 
 __all__ = ["main"]
@@ -61,9 +67,15 @@ def _add_transfer(sub) -> None:
                    help="default (best measured) or published (the method as published)")
     p.add_argument("--grid", default="150x150", help="grid size HxW (default 150x150)")
     p.add_argument("--out", metavar="NPZ", help="write vertices/neutral/mask (target scan frame) and more")
-    p.add_argument("--mesh", metavar="OBJ|PLY", help="write the animated target as a mesh with u,v")
-    p.add_argument("--png", metavar="PNG", help="write renders of source, expression, target and result")
+    p.add_argument("--mesh", metavar="OBJ|PLY",
+                   help="write the animated target: an OBJ textured by the target's image (with NAME.mtl "
+                        "and NAME_texture.png beside it), or a PLY with vertex colours")
+    p.add_argument("--png", metavar="PNG",
+                   help="write pictures of source, expression, measured motion, target and result")
     p.add_argument("--gif", metavar="GIF", help="write an animation of the magnitude sweep 0 -> m -> 0")
+    p.add_argument("--html", metavar="HTML",
+                   help="write a page to open in a browser: the animated target in its colours, to turn "
+                        "and zoom, with a slider for the magnitude")
     p.add_argument("--truth", metavar="D",
                    help="a real expressive scan of the target: adds an error heat map to --png "
                         "(surface distance after a rigid alignment) and prints the RMS")
@@ -71,39 +83,33 @@ def _add_transfer(sub) -> None:
     p.add_argument("--quiet", action="store_true")
 
 
-def _grid_shape(text: str) -> tuple[int, int]:
-    try:
-        h, w = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"--grid must look like 150x150, got {text!r}") from None
-    if not (8 <= h <= 4096 and 8 <= w <= 4096):
-        raise ValueError(f"--grid sizes must be between 8 and 4096, got {text!r}")
-    return h, w
-
-
 def run_transfer(args) -> int:
 
     progress = _Progress(args.quiet)
-    shape = _grid_shape(args.grid)
+    shape = grid_shape(args.grid)
     grids = []
     for path, lm in ((args.source_neutral, args.source_neutral_landmarks),
                      (args.source_expr, args.source_expr_landmarks), (args.target, args.target_landmarks)):
         grids.append(load_scan(path, lm, shape=shape))
         progress.step(f"read and resampled {path}")
     options = TransferOptions.published() if args.method == "published" else TransferOptions()
-    result = transfer(*grids, args.au, args.magnitude, options=options)
+    result = transfer(*grids, args.au, args.magnitude, options=options, progress=progress.step)
     progress.step(f"transferred {'+'.join(result.animation.labels)} at magnitude {args.magnitude:g}")
     if args.out:
         io.write_npz(args.out, **result.to_npz_dict())
         progress.step(f"wrote {args.out}")
     if args.mesh:
-        mesh = result.target.grid.with_points(result.vertices).mesh()
-        io.write_mesh(args.mesh, mesh.vertices, mesh.faces, uv=mesh.uv)
-        progress.step(f"wrote {args.mesh}")
+        written = write_result_mesh(result, args.mesh)
+        progress.step(f"wrote {', '.join(str(p) for p in written)}")
     errors = None
     if args.truth:
         truth = load_scan(args.truth, args.truth_landmarks, shape=shape)
-        errors, neutral_errors = _distance_to_truth(result, truth, grids[2])
+        # distances to the true surface rigidly aligned onto the target's neutral scan
+        # in the target grid's frame, where the truth is aligned (a scan resampled from
+        # another frame has its vertices in that frame)
+        animation = result.animation
+        errors, neutral_errors = surface_distances(
+            [animation.frame_in_grid(result.magnitude), animation.frame_in_grid(0.0)], result.mask, truth, grids[2])
         # score where the expression shows: the neutral target is off the true surface
         moving = neutral_errors > 0.5
         rms = lambda d: float(np.sqrt(np.mean(d ** 2)))  # noqa: E731
@@ -111,39 +117,17 @@ def run_transfer(args) -> int:
                       f"({int(moving.sum())} vertices): rms {rms(errors[moving]):.2f} mm "
                       f"(the neutral target: {rms(neutral_errors[moving]):.2f} mm)")
     if args.png:
-        images = [render.render_grid(g.points, g.mask) for g in grids]
-        images.append(render.render_grid(result.vertices, result.mask))
-        titles = ["source neutral", "source expressive", "target neutral",
-                  f"target {'+'.join(result.animation.labels)} m={args.magnitude:g}"]
-        if errors is not None:
-            mesh = result.target.grid.with_points(result.vertices).mesh()
-            images.append(render.error_heatmap(mesh.vertices, mesh.faces,
-                                               np.nan_to_num(errors.reshape(-1)[mesh.grid_index])))
-            titles.append("distance to the true scan (mm)")
-        render.save_png(args.png, render.side_by_side(images, titles))
+        picture = transfer_picture(grids, result, errors=errors,
+                                   titles={"error": "distance to the true scan (mm)"})
+        io.write_png(args.png, picture)
         progress.step(f"wrote {args.png}")
     if args.gif:
-        ms = np.concatenate([np.linspace(0, args.magnitude, 8), np.linspace(args.magnitude, 0, 8)[1:]])
-        frames = [render.render_grid(result.animation.frame_in_scan(m), result.mask) for m in ms]
-        render.save_gif(args.gif, frames, fps=12)
+        write_sweep_gif(result, args.gif, frames=16)
         progress.step(f"wrote {args.gif}")
+    if args.html:
+        write_result_page(result, args.html)
+        progress.step(f"wrote {args.html}")
     return 0
-
-
-def _distance_to_truth(result, truth, target) -> tuple[np.ndarray, np.ndarray]:
-    """(H, W) distances (mm) from the animated target's vertices, and from its neutral
-    vertices, to the true expressive surface, after aligning the truth rigidly onto the
-    target's neutral scan (landmarks, then robust ICP, which the still part of the face
-    decides); NaN where the grid is invalid."""
-
-    align = align_rigid(truth, target).transform
-    mesh = truth.mesh()
-    surface = MeshSurface(align.apply(mesh.vertices), mesh.faces)
-    result_distances = np.full(result.mask.shape, np.nan)
-    neutral_distances = np.full(result.mask.shape, np.nan)
-    result_distances[result.mask] = surface.closest_point(result.vertices[result.mask]).distances
-    neutral_distances[result.mask] = surface.closest_point(result.neutral[result.mask]).distances
-    return result_distances, neutral_distances
 
 
 def run_build_afm(args) -> int:
@@ -151,7 +135,7 @@ def run_build_afm(args) -> int:
     progress = _Progress(args.quiet)
     faces = afm_faces()
     progress.step(f"generated {len(faces)} procedural faces")
-    afm = build_average_face(faces, shape=_grid_shape(args.grid))
+    afm = build_average_face(faces, shape=grid_shape(args.grid))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     afm.save(args.out)
     progress.step(f"wrote {args.out} ({afm.grid.mask.sum()} valid vertices)")
@@ -163,16 +147,27 @@ def run_demo_command(args) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: the message and where to find the usage, not the
+    whole usage text (sub-commands inherit it)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="tpscore", description="Morph and animate 3D faces with TPS and RBFs.")
+    parser = _Parser(prog="tpscore", description="Morph and animate 3D faces with TPS and RBFs.")
+    parser.add_argument("--version", action="version", version=f"tpscore {__version__}")
     parser.add_argument("--traceback", action="store_true", help="show a full traceback on errors")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_transfer(sub)
-    d = sub.add_parser("demo", help="run the whole pipeline on embedded faces; write meshes and pictures")
+    d = sub.add_parser("demo", help="transfer expressions between two real faces shipped with tpscore; "
+                                    "write meshes, pictures and pages, scored against the truth")
     d.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
     d.add_argument("--quiet", action="store_true")
     add_elastic_parser(sub)
     add_adapt_parser(sub)
+    add_batch_parser(sub)
     add_simulate_parser(sub)
     b = sub.add_parser("build-afm", help="rebuild the average face model from the procedural faces")
     b.add_argument("--out", default="average_face.npz")
@@ -186,6 +181,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     handlers = {"transfer": run_transfer, "demo": run_demo_command, "build-afm": run_build_afm,
                 "elastic": elastic_command, "adapt": adapt_command,
+                "batch": batch_command,
                 "simulate": simulate_command}
     with warnings.catch_warnings():
         warnings.simplefilter("default")
@@ -197,5 +193,11 @@ def main(argv=None) -> int:
             if args.traceback:
                 raise
             print(f"tpscore: error: {exc}", file=sys.stderr)
+            return 2
+        except MemoryError as exc:
+            if args.traceback:
+                raise
+            print(f"tpscore: error: out of memory{': ' + str(exc) if str(exc) else ''} "
+                  "(a smaller --grid needs less)", file=sys.stderr)
             return 2
 

@@ -8,7 +8,7 @@ from .action_units import ActionUnit, ActionUnitLibrary, Activation, ControlPoin
 from .alignment import RigidAlignment, align_rigid, fit_mirror_symmetry
 from .animation import Animation, animate
 from .mirror import MirroredMotion
-from .modelling import ExpressionModel, model_expression
+from .modelling import ExpressionModel, PersonMismatchWarning, model_expression
 from .options import TransferOptions
 from .pipeline import TransferResult, transfer
 from .registration import DenseMotion, MotionOptions, register_surfaces
@@ -18,4 +18,4 @@ __all__ = ["transfer", "TransferOptions", "TransferResult", "Animation", "animat
            "model_expression", "ActionUnit", "ActionUnitLibrary", "Activation", "ControlPoint",
            "default_library", "RigidAlignment", "align_rigid", "fit_mirror_symmetry", "MirroredMotion",
            "DenseMotion", "MotionOptions", "register_surfaces", "TextureMatches", "TextureOptions",
-           "TextureWarning", "track_texture"]
+           "TextureWarning", "track_texture", "PersonMismatchWarning"]

@@ -22,6 +22,8 @@ from typing import Mapping
 
 import numpy as np
 
+from .._files import atomic_write
+from .._validation import as_real
 from ..face.landmarks import AnchoredPoint
 
 __all__ = [
@@ -31,9 +33,16 @@ __all__ = [
     "ActionUnitLibrary",
     "default_library",
     "REGIONS",
+    "MAX_WEIGHT",
 ]
 
 REGIONS = ("upper", "lower")
+
+#: The largest weight of an AU, and the largest transfer magnitude, in absolute value:
+#: twice the modelled expression. [0, 1] is the expression's own range; values outside
+#: it extrapolate (and warn); beyond this they make faces no expression makes (a weight
+#: of 1e9 moved a face by metres).
+MAX_WEIGHT = 2.0
 _KINDS = ("muscle", "wrinkle")
 
 
@@ -163,7 +172,7 @@ class ActionUnitLibrary:
         doc = {"format": "tpscore-action-units", "version": 1,
                "action_units": [au.to_dict() for au in self.action_units.values()],
                "emotions": self.emotions}
-        Path(path).write_text(json.dumps(doc, indent=1), encoding="utf-8")
+        atomic_write(path, json.dumps(doc, indent=1).encode("utf-8"))
 
     def add(self, action_unit: ActionUnit, *, replace: bool = False) -> None:
         if action_unit.code in self.action_units and not replace:
@@ -211,26 +220,38 @@ class ActionUnitLibrary:
         (``"sadness"``), a mapping ``{"12": 1.0}`` or a list of such tokens.
         Repeated AUs on the same side add their weights.
         """
+        def weight_of(code, value) -> float:
+            return as_real(value, f"action_units: the weight of {code!r}", low=-MAX_WEIGHT, high=MAX_WEIGHT)
+
         if isinstance(spec, Mapping):
-            tokens = [(str(k), float(v)) for k, v in spec.items()]
+            tokens = [(str(k), weight_of(k, v)) for k, v in spec.items()]
         else:
+            # an AU code is text or a whole number; a float such as 2.5 or None is a slip
+            if not isinstance(spec, (str, int, list, tuple)) or isinstance(spec, bool):
+                raise ValueError(
+                    "action_units must be an AU code ('12', '12L', '1,4,15', 'AU12:0.5'), an emotion "
+                    f"name, a list of them or a mapping {{code: weight}}; got {spec!r:.80}")
             items = [spec] if isinstance(spec, (str, int)) else list(spec)
             tokens = []
             for item in items:
+                if not isinstance(item, (str, int)) or isinstance(item, bool):
+                    raise ValueError(f"action_units: {item!r:.80} is not an AU code (text or a whole number)")
                 for part in re.split(r"[,+\s]+", str(item).strip()):
                     if not part:
                         continue
                     code, _, weight = part.partition(":")
+                    if not weight:
+                        tokens.append((code, 1.0))
+                        continue
                     try:
-                        tokens.append((code, float(weight) if weight else 1.0))
+                        number = float(weight)
                     except ValueError:
-                        raise ValueError(f"bad weight in {part!r}: expected a number after ':'") from None
+                        raise ValueError(f"bad weight in {part[:80]!r}: expected a number after ':'") from None
+                    tokens.append((code, weight_of(code, number)))
         if not tokens:
             raise ValueError("no action unit given")
         merged: dict[tuple[str, str | None], float] = {}
         for code, weight in tokens:
-            if not np.isfinite(weight):
-                raise ValueError(f"weight of {code!r} must be finite")
             if code.lower() in self.emotions:
                 for sub, w in self.emotions[code.lower()].items():
                     key = self._split_code(sub)
@@ -238,6 +259,10 @@ class ActionUnitLibrary:
                 continue
             key = self._split_code(code)
             merged[key] = merged.get(key, 0.0) + weight
+        for (code, side), weight in merged.items():
+            if abs(weight) > MAX_WEIGHT:  # repeated codes add up
+                raise ValueError(f"action_units: AU{code}{side or ''} adds up to a weight of {weight:g}, "
+                                 f"outside [-{MAX_WEIGHT:g}, {MAX_WEIGHT:g}]")
         return [Activation(self.action_units[c], s, w) for (c, s), w in merged.items()]
 
 

@@ -17,14 +17,16 @@ from typing import Mapping, Sequence
 import numpy as np
 from scipy import ndimage
 
+from .._validation import as_real
 from ..face.landmarks import landmark_map
 from ..face.normalise import NormalisedFace
 from ..face.regions import region_weight, side_weight, smoothstep
+from .action_units import MAX_WEIGHT
 from .mirror import MirroredMotion
 from .modelling import ExpressionModel, mirrored
 from .published import control_point_warp, mouth_width_ratio
 
-__all__ = ["Animation", "animate"]
+__all__ = ["Animation", "animate", "magnitude_weights"]
 
 
 @dataclass
@@ -43,18 +45,13 @@ class Animation:
 
     def __post_init__(self):
         self._neutral = np.where(self.target.grid.mask[..., None], self.target.grid.points, np.nan)
-        self._inverse = self.target.transform.inverse()
+        self._to_grid = self.target.transform.inverse()
+        # a scan resampled from another frame or unit goes back there
+        scan_frame = self.target.grid.scan_frame
+        self._to_scan = self._to_grid if scan_frame is None else self._to_grid.then(scan_frame)
 
     def _weights(self, magnitude) -> np.ndarray:
-        if isinstance(magnitude, Mapping):
-            unknown = set(magnitude) - set(self.labels)
-            if unknown:
-                raise ValueError(f"unknown AU label(s) {sorted(unknown)}; this animation has {self.labels}")
-            w = np.array([float(magnitude.get(label, 0.0)) for label in self.labels])
-        else:
-            w = np.broadcast_to(np.asarray(magnitude, dtype=np.float64), (len(self.labels),)).copy()
-        if not np.isfinite(w).all():
-            raise ValueError("magnitude must be finite")
+        w = magnitude_weights(magnitude, self.labels)
         if ((w < 0) | (w > 1)).any():
             warnings.warn(f"magnitude {w.tolist()} is outside [0, 1]: extrapolating the expression",
                           stacklevel=3)
@@ -72,9 +69,14 @@ class Animation:
         """(H, W, 3) animated target in the reference frame (NaN where the grid is invalid)."""
         return self._neutral + self.displacement(magnitude)
 
+    def frame_in_grid(self, magnitude=1.0) -> np.ndarray:
+        """(H, W, 3) animated target in the frame of the target grid (the scan's frame,
+        or the canonical frame the scan was resampled in, see :class:`FaceGrid`)."""
+        return self._to_grid.apply(self.frame(magnitude))
+
     def frame_in_scan(self, magnitude=1.0) -> np.ndarray:
         """(H, W, 3) animated target in the target scan's own frame."""
-        return self._inverse.apply(self.frame(magnitude))
+        return self._to_scan.apply(self.frame(magnitude))
 
     def sweep(self, magnitudes: Sequence[float]) -> list[np.ndarray]:
         return [self.frame(m) for m in magnitudes]
@@ -97,6 +99,34 @@ class Animation:
         return cls(first.target, labels, np.concatenate([a.fields for a in animations]),
                    [c for a in animations for c in a.control_points],
                    [c for a in animations for c in a.moved_control_points])
+
+
+def magnitude_weights(magnitude, labels: Sequence[str] | None = None) -> np.ndarray:
+    """The weight of each AU field for a magnitude: a number, a sequence with one per
+    label, or a mapping {label: weight} (unnamed labels 0).
+
+    Each must be finite and within [-MAX_WEIGHT, MAX_WEIGHT]. Without ``labels`` only
+    the values are checked (and returned in their order).
+    """
+    bound = {"low": -MAX_WEIGHT, "high": MAX_WEIGHT}
+    if isinstance(magnitude, Mapping):
+        if labels is not None:
+            unknown = set(magnitude) - set(labels)
+            if unknown:
+                raise ValueError(f"magnitude: unknown AU label(s) {sorted(map(str, unknown))}; "
+                                 f"this animation has {list(labels)}")
+        checked = {key: as_real(value, f"magnitude[{key!r}]", **bound) for key, value in magnitude.items()}
+        return np.array([checked.get(label, 0.0) for label in labels] if labels is not None
+                        else list(checked.values()), dtype=np.float64)
+    if np.ndim(magnitude) == 0:
+        value = as_real(magnitude, "magnitude", **bound)
+        return np.full(len(labels) if labels is not None else 1, value)
+    values = [as_real(v, f"magnitude[{k}]", **bound) for k, v in enumerate(np.asarray(magnitude).reshape(-1))]
+    if labels is not None and len(values) == 1:
+        values = values * len(labels)
+    if labels is not None and len(values) != len(labels):
+        raise ValueError(f"magnitude has {len(values)} weights for the {len(labels)} fields {list(labels)}")
+    return np.array(values, dtype=np.float64)
 
 
 def _carried(model: ExpressionModel, target: NormalisedFace) -> np.ndarray:

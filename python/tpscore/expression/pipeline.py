@@ -10,30 +10,53 @@ motion carried onto the target as one field per AU (:mod:`tpscore.expression.ani
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 
-from ..face.average_face import load_average_face
+from ..face.average_face import AverageFace, load_average_face
 from ..face.grid import FaceGrid
+from ..face.landmarks import MIN_LANDMARKS, N_LANDMARKS
 from ..face.normalise import NormalisedFace, normalise_face
+from ..face.pose import check_landmarks
+from ..face.regions import region_boundary
 from .action_units import ActionUnitLibrary, default_library
-from .animation import Animation, animate
+from .animation import Animation, animate, magnitude_weights
 from .modelling import ExpressionModel, align_expressive, model_expression
 from .options import TransferOptions
 
 __all__ = ["TransferResult", "transfer"]
 
+_STAGE_MESSAGES = {"normalise": "normalised the faces", "align": "aligned the expressive scan",
+                   "model": "measured the source's motion", "animate": "carried the motion onto the target"}
+
 
 @dataclass
 class TransferResult:
-    """The target wearing the expression, in the reference frame and in its scan frame."""
+    """The target wearing the expression, in the reference frame and in its scan frame.
+
+    ``vertices``, ``neutral``, ``mask``, ``uv``, ``image`` and ``colours`` describe the
+    animated target on its grid, in the target scan's own frame, with the target's own
+    colours; ``animation`` gives any other magnitude.
+    """
 
     animation: Animation
     magnitude: float | Mapping[str, float]
     model: ExpressionModel
     timings: dict = field(default_factory=dict)  # seconds per stage
+
+    def __repr__(self) -> str:
+        height, width = self.mask.shape
+        if isinstance(self.magnitude, Mapping):
+            amount = ", ".join(f"{k}={float(v):g}" for k, v in self.magnitude.items())
+        else:
+            amount = f"m={float(self.magnitude):g}"
+        colour = "colour" if self.image is not None else "no colour"
+        return (f"TransferResult({'+'.join(self.animation.labels)} at {amount} on a {height}x{width} target "
+                f"({int(self.mask.sum())} valid vertices, {colour}), scan frame <- "
+                f"{self.target.transform.method} normalisation, {sum(self.timings.values()):.2f} s)")
 
     @property
     def target(self) -> NormalisedFace:
@@ -59,23 +82,63 @@ class TransferResult:
 
     @property
     def mask(self) -> np.ndarray:
+        """(H, W) bool, the target grid's valid vertices."""
         return self.target.grid.mask
+
+    @property
+    def uv(self) -> np.ndarray:
+        """(H, W, 2) each target vertex's place in :attr:`image` (u right, v down)."""
+        return self.target.grid.uv
+
+    @property
+    def image(self) -> np.ndarray | None:
+        """The target scan's colour image (None for a scan without one)."""
+        return self.target.grid.image
+
+    @property
+    def colours(self) -> np.ndarray | None:
+        """(H, W, 3) float32 RGB in [0, 1]: the target's colour at each vertex, which the
+        skin keeps as it moves (NaN where the mask is False); None without an image."""
+        return self.target.grid.colours
+
+    def field_in_scan(self) -> np.ndarray:
+        """(H, W, 3) the displacement at the result's magnitude, in the target scan's
+        frame (NaN where the mask is False). The animation is linear in the magnitude,
+        so the target at a fraction t of it is ``neutral + t * field_in_scan()``."""
+        return self.vertices - self.neutral
+
+    def measured_motion(self) -> np.ndarray | None:
+        """(H, W, 3) the source's measured displacement at each vertex of its neutral
+        grid, in the reference frame (NaN off the mask): what the transfer carried.
+        None for the method as published, which measures control points only (see
+        ``model.motions``)."""
+        if self.model.dense is None:
+            return None
+        grid = self.model.source.grid
+        motion = np.full(grid.points.shape, np.nan)
+        motion[grid.mask] = self.model.dense(grid.points[grid.mask])
+        return motion
 
     def to_npz_dict(self) -> dict:
         """Arrays for ``--out result.npz`` (scan-frame arrays first, as scorers expect)."""
+        to_normalised = self.target.transform
+        scan_frame = self.target.grid.scan_frame
+        if scan_frame is not None:
+            to_normalised = scan_frame.inverse().then(to_normalised)
         return dict(
             vertices=self.vertices, neutral=self.neutral, mask=self.mask,
             vertices_normalised=self.vertices_normalised,
             neutral_normalised=self.neutral_normalised,
-            scan_to_normalised=self.target.transform.matrix,
-            uv=self.target.grid.uv, landmarks=self.target.transform.apply_inverse(self.target.landmarks),
+            scan_to_normalised=to_normalised.matrix,
+            uv=self.target.grid.uv, landmarks=to_normalised.apply_inverse(self.target.landmarks),
             action_units=np.array(self.animation.labels),
         )
 
 
 def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: FaceGrid, action_units,
              magnitude=1.0, *, reference=None, library: ActionUnitLibrary | None = None,
-             options: TransferOptions = TransferOptions()) -> TransferResult:
+             options: TransferOptions = TransferOptions(),
+             progress: Callable[[str], None] | None = None) -> TransferResult:
     """Put the source's expression on the target.
 
     Parameters
@@ -87,41 +150,74 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
         What to transfer: ``"12"``, ``"12L"``, ``"1,4,15"``, ``"sadness"``,
         ``{"12": 0.5}`` (see :meth:`ActionUnitLibrary.parse`).
     magnitude : float or mapping
-        m in [0, 1] (values outside warn), or a weight per AU label.
+        m in [0, 1], or a weight per AU label; finite and within [-2, 2]
+        (:data:`~tpscore.expression.action_units.MAX_WEIGHT`); outside [0, 1] it
+        extrapolates the expression, with a warning.
     reference : AverageFace, optional
         The reference face (default: the one shipped with tpscore).
     library : ActionUnitLibrary, optional
         Default: the shipped library.
     options : TransferOptions
         Pipeline choices; ``TransferOptions.published()`` is the method as published.
+    progress : callable, optional
+        Called with a short message as each stage ends (the command line prints them;
+        the modelling stage takes most of a transfer's time).
 
     Returns
     -------
     TransferResult
         With ``timings``, the seconds each stage took.
+
+    Raises
+    ------
+    ValueError
+        An argument of the wrong type or out of range (naming it), or a face whose
+        landmarks do not allow a step (naming the face: ``source_neutral``,
+        ``source_expressive`` or ``target``).
     """
     clock = time.perf_counter()
     timings = {}
+    faces = {"source_neutral": source_neutral, "source_expressive": source_expressive, "target": target}
+    for name, face in faces.items():
+        if not isinstance(face, FaceGrid):
+            raise ValueError(f"{name} must be a FaceGrid (read a scan with tpscore.load_scan), "
+                             f"got {type(face).__name__} {face!r:.60}")
+    if not isinstance(options, TransferOptions):
+        raise ValueError(f"options must be a TransferOptions (e.g. TransferOptions.published()), "
+                         f"got {type(options).__name__} {options!r:.60}")
+    if reference is not None and not isinstance(reference, AverageFace):
+        raise ValueError(f"reference must be an AverageFace, got {type(reference).__name__}")
+    if library is not None and not isinstance(library, ActionUnitLibrary):
+        raise ValueError(f"library must be an ActionUnitLibrary, got {type(library).__name__}")
+    # checked before the work, so a bad magnitude fails here and not at .vertices
+    magnitude_weights(magnitude)
+    for name, face in faces.items():
+        _check_face(name, face)
 
     def lap(stage):
         nonlocal clock
         now = time.perf_counter()
         timings[stage] = now - clock
         clock = now
+        if progress is not None and stage in _STAGE_MESSAGES:
+            progress(f"{_STAGE_MESSAGES[stage]} ({timings[stage]:.2f} s)")
 
     activations = (library or default_library()).parse(action_units)
     reference_face = (reference or load_average_face()).as_normalised_face()
     lap("setup")
     # the published method normalises every scan on its own landmarks by the affine map
     normalisation = "affine" if options.method == "published" else "similarity"
-    neutral = normalise_face(source_neutral, reference_face.landmarks, normalisation)
-    target_face = normalise_face(target, reference_face.landmarks, normalisation)
+    with _naming("source_neutral"):
+        neutral = normalise_face(source_neutral, reference_face.landmarks, normalisation)
+    with _naming("target"):
+        target_face = normalise_face(target, reference_face.landmarks, normalisation)
     lap("normalise")
-    if options.method == "published":
-        expressive = normalise_face(source_expressive, reference_face.landmarks, normalisation)
-    else:
-        expressive = align_expressive(neutral, source_neutral, source_expressive,
-                                      [a.action_unit.region for a in activations])
+    with _naming("source_expressive"):
+        if options.method == "published":
+            expressive = normalise_face(source_expressive, reference_face.landmarks, normalisation)
+        else:
+            expressive = align_expressive(neutral, source_neutral, source_expressive,
+                                          [a.action_unit.region for a in activations])
     lap("align")
     model = model_expression(neutral, expressive, activations, reference_face, options)
     lap("model")
@@ -131,4 +227,40 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
         timings["model"] -= model.texture.seconds
     animation = animate(model, target_face)
     lap("animate")
+    magnitude_weights(magnitude, animation.labels)  # a mapping's labels, now that they are known
     return TransferResult(animation, magnitude, model, timings)
+
+
+@contextmanager
+def _naming(name: str):
+    """Prefix the argument's name to a ValueError raised inside: a stage that works on
+    one scan then says which of the three it was."""
+    try:
+        yield
+    except ValueError as exc:
+        if str(exc).startswith(name):
+            raise
+        try:
+            named = type(exc)(f"{name}: {exc}")
+        except TypeError:  # a subclass whose constructor takes other arguments
+            named = ValueError(f"{name}: {exc}")
+        raise named from None
+
+
+def _check_face(name: str, face: FaceGrid) -> None:
+    """Every face needs the landmarks of a landmark TPS and of the upper/lower split,
+    landmarks that can be a face's, and the canonical pose and unit."""
+    present = int(np.isfinite(face.landmarks).all(axis=1).sum())
+    if present < MIN_LANDMARKS:
+        raise ValueError(f"{name}: only {present} of the {N_LANDMARKS} landmarks are present; a transfer "
+                         f"needs at least {MIN_LANDMARKS} (give the scan's landmark file)")
+    with _naming(name):
+        region_boundary(face.landmarks)
+    pose = check_landmarks(face.landmarks, f"{name}: the landmarks")
+    if pose is not None and pose.plausible and (
+            pose.mm_per_unit != 1.0 or not np.array_equal(pose.rotation, np.eye(3))):
+        # resample_scan brings scans into the canonical frame; this grid was built otherwise
+        raise ValueError(
+            f"{name}: the face {pose.describe()}; a transfer needs it frontal (looking toward +z, "
+            "+y up) and in millimetres. tpscore.load_scan and resample_scan bring a scan there "
+            "from its landmarks")

@@ -22,6 +22,7 @@ from .landmarks import LANDMARK_NAMES, N_LANDMARKS, landmark_index, landmark_map
 from .normalise import FrameTransform, NormalisedFace, similarity_transform
 from ..datasets import embedded_faces
 from .grid import FaceGrid, resample_scan
+from .io import read_npz, write_npz
 from ..spatial import MeshSurface
 
 __all__ = ["AverageFace", "build_average_face", "load_average_face", "consensus_landmarks", "afm_faces",
@@ -58,20 +59,21 @@ class AverageFace:
 
     def save(self, path) -> None:
         """Write the AFM as a compressed .npz."""
-        np.savez_compressed(path, points=self.grid.points.astype(np.float32), mask=self.grid.mask,
-                            landmarks=self.grid.landmarks, n_faces=self.n_faces)
+        write_npz(path, points=self.grid.points.astype(np.float32), mask=self.grid.mask,
+                  landmarks=self.grid.landmarks, n_faces=self.n_faces)
 
     @classmethod
     def load(cls, path) -> "AverageFace":
+        what = "an average face model"
+        data = read_npz(path, ("points", "mask", "landmarks", "n_faces"), what=what)
         try:
-            with np.load(path) as data:
-                points = data["points"].astype(np.float64)
-                mask = data["mask"].astype(bool)
-                landmarks = data["landmarks"].astype(np.float64)
-                n_faces = int(data["n_faces"])
-        except (OSError, KeyError, ValueError) as exc:
-            raise ValueError(f"{path}: not an average face model: {exc}") from None
-        return cls(FaceGrid.from_points(points, mask, landmarks), n_faces)
+            n_faces = data["n_faces"]
+            if n_faces.shape != () or not np.issubdtype(n_faces.dtype, np.integer) or n_faces < 1:
+                raise ValueError(f"n_faces must be a whole number >= 1, got {n_faces!r}")
+            grid = FaceGrid.from_points(data["points"], data["mask"], data["landmarks"])
+        except ValueError as exc:
+            raise ValueError(f"{str(path)!r}: not {what}: {exc}") from None
+        return cls(grid, int(n_faces))
 
 
 def canonical_frame(landmarks) -> FrameTransform:

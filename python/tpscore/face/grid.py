@@ -31,11 +31,13 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
-from .._validation import as_positive
+from .._validation import MAX_COORDINATE, as_array, as_path, as_positive
+from ..geometry import FrameTransform
 from .image import as_colour_image as _as_colour_image
 from .image import check_image_fits, sample_image
 from .io import BntScan, read_bnt, read_image, read_landmarks, read_mesh
 from .landmarks import LANDMARK_NAMES, N_LANDMARKS, as_landmarks, empty_landmarks
+from .pose import scan_pose
 
 __all__ = [
     "FaceGrid",
@@ -45,11 +47,17 @@ __all__ = [
     "load_scan",
     "DEFAULT_GRID_SHAPE",
     "DEFAULT_MAX_GAP_MM",
+    "MAX_GRID_VERTICES",
     "LANDMARK_SNAP_WARNING_MM",
 ]
 
 #: Default output grid (rows, columns).
 DEFAULT_GRID_SHAPE = (150, 150)
+
+#: The largest grid, in vertices (1024 x 1024). A transfer on it takes about 2 GB of
+#: memory and tens of seconds; a scan has fewer points than that (a Bosphorus scan about
+#: 200,000), so a finer grid would only interpolate.
+MAX_GRID_VERTICES = 1024 * 1024
 
 #: Default widest gap (mm) between valid points that resampling bridges by linear
 #: interpolation beyond the scan's own sampling. 3 mm fills scanner dropouts of a
@@ -117,6 +125,10 @@ class FaceGrid:
         The scan's colour image at full resolution, which ``uv`` points into (None for
         a scan without one). It is shared, not copied, between grids made from one
         scan, and read-only.
+    scan_frame : FrameTransform or None
+        The map from the grid's frame back to the frame of the scan it was made from,
+        when :func:`resample_scan` brought the scan into the canonical frame (see
+        :mod:`tpscore.face.pose`); None when the two are the same.
     """
 
     points: np.ndarray
@@ -125,19 +137,20 @@ class FaceGrid:
     landmarks: np.ndarray
     landmark_vertices: np.ndarray
     image: np.ndarray | None = None
+    scan_frame: FrameTransform | None = None
 
     def __post_init__(self):
         mask = np.array(self.mask, dtype=bool)
         if mask.ndim != 2 or min(mask.shape) < 2:
             raise ValueError(f"mask must have shape (H, W) with H, W >= 2, got {mask.shape}")
         height, width = mask.shape
-        points = np.array(self.points, dtype=np.float64)
+        points = np.array(as_array(self.points, "points"), dtype=np.float64)
         if points.shape != (height, width, 3):
             raise ValueError(f"points must have shape ({height}, {width}, 3), got {points.shape}")
         if not np.isfinite(points[mask]).all():
             raise ValueError("points has NaN or infinite values at vertices the mask marks valid")
         points[~mask] = np.nan
-        uv = np.array(self.uv, dtype=np.float64)
+        uv = np.array(as_array(self.uv, "uv"), dtype=np.float64)
         if uv.shape != (height, width, 2) or not np.isfinite(uv).all():
             raise ValueError(f"uv must be a finite ({height}, {width}, 2) array, got shape {uv.shape}")
         landmarks = as_landmarks(self.landmarks)
@@ -158,6 +171,15 @@ class FaceGrid:
         self.landmarks, self.landmark_vertices = landmarks, index
         if self.image is not None:
             self.image = _as_colour_image(self.image)
+        if self.scan_frame is not None and not isinstance(self.scan_frame, FrameTransform):
+            raise ValueError(f"scan_frame must be a FrameTransform or None, got {type(self.scan_frame).__name__}")
+
+    def __repr__(self) -> str:
+        height, width = self.shape
+        present = int(np.count_nonzero(self.landmark_vertices >= 0))
+        image = "no image" if self.image is None else f"image {self.image.shape[1]}x{self.image.shape[0]}"
+        return (f"FaceGrid({height}x{width}, {self.n_valid} valid vertices, "
+                f"{present}/{N_LANDMARKS} landmarks, {image})")
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -231,7 +253,7 @@ class FaceGrid:
     def from_points(cls, points, mask=None, landmarks=None) -> "FaceGrid":
         """A grid from (H, W, 3) points (NaN or `mask` False where invalid), with the
         default u,v map and `landmarks` (22, 3; NaN rows missing) snapped to it."""
-        points = np.array(points, dtype=np.float64)
+        points = np.array(as_array(points, "points"), dtype=np.float64)
         if points.ndim != 3 or points.shape[2] != 3:
             raise ValueError(f"points must have shape (H, W, 3), got {points.shape}")
         valid = np.isfinite(points).all(axis=2)
@@ -244,7 +266,7 @@ class FaceGrid:
     def copy(self) -> "FaceGrid":
         """A deep copy."""
         return FaceGrid(self.points.copy(), self.mask.copy(), self.uv.copy(),
-                        self.landmarks.copy(), self.landmark_vertices.copy(), self.image)
+                        self.landmarks.copy(), self.landmark_vertices.copy(), self.image, self.scan_frame)
 
     def with_points(self, new_points) -> "FaceGrid":
         """The same grid (mask, u,v map, landmark vertices) with moved vertices.
@@ -259,7 +281,7 @@ class FaceGrid:
         FaceGrid whose landmarks are the new positions of the landmark vertices.
         """
         height, width = self.shape
-        points = np.array(new_points, dtype=np.float64)
+        points = np.array(as_array(new_points, "new_points"), dtype=np.float64)
         if points.shape == (height * width, 3):
             points = points.reshape(height, width, 3)
         if points.shape != (height, width, 3):
@@ -273,7 +295,7 @@ class FaceGrid:
         present = self.landmark_vertices >= 0
         landmarks[present] = points.reshape(-1, 3)[self.landmark_vertices[present]]
         return FaceGrid(points, self.mask.copy(), self.uv.copy(), landmarks, self.landmark_vertices.copy(),
-                        self.image)
+                        self.image, self.scan_frame)
 
     def with_landmarks(self, landmarks) -> "FaceGrid":
         """The same grid with `landmarks` (22, 3; NaN rows missing) snapped to it.
@@ -282,7 +304,8 @@ class FaceGrid:
         :func:`resample_scan` for the warning given when that vertex is far.
         """
         snapped, index = _snap_landmarks(self.vertices, self.mask.reshape(-1), landmarks)
-        return FaceGrid(self.points.copy(), self.mask.copy(), self.uv.copy(), snapped, index, self.image)
+        return FaceGrid(self.points.copy(), self.mask.copy(), self.uv.copy(), snapped, index, self.image,
+                        self.scan_frame)
 
 
 # --------------------------------------------------------------------------- resampling
@@ -313,6 +336,12 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
     Delaunay edge)`` are dropped. Gaps wider than `max_gap_mm`, and everything outside the
     data, stay invalid. ``max_gap_mm=0`` bridges nothing beyond the sampling itself.
 
+    Pose and unit: a scan whose landmarks show another frame (its axes swapped, as in a
+    profile view or a y-forward, z-up scanner frame) or unit (centimetres, metres) is
+    first brought to the canonical frame, looking toward +z with +y up, in millimetres
+    (:func:`tpscore.face.pose.scan_pose`); the grid's ``scan_frame`` maps back. A scan
+    within 45 degrees of frontal and in millimetres is resampled as it is.
+
     Landmarks: each finite landmark is snapped to the nearest valid grid vertex
     (3D distance); missing (NaN) landmarks stay missing. A landmark farther than
     :data:`LANDMARK_SNAP_WARNING_MM` from every valid vertex still snaps but raises a
@@ -325,7 +354,7 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
     landmarks : (22, 3) array-like or None
         Landmarks in the scan's frame, NaN rows for missing ones; None: all missing.
     shape : (int, int)
-        Output grid (H, W), each >= 2.
+        Output grid (H, W), each >= 2, at most MAX_GRID_VERTICES (1024 x 1024) in all.
     max_gap_mm : float >= 0
         Widest gap bridged by interpolation (see above).
     uv : (R, C, 2) or (n, 2) array-like, optional
@@ -341,7 +370,8 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
     ------
     ValueError
         Fewer than 3 valid points, valid points without extent in x or y (or
-        collinear), a bad `shape` or `max_gap_mm`, landmarks not of shape (22, 3), or
+        collinear), a point beyond +-1e15 mm, a bad `shape` (more than
+        :data:`MAX_GRID_VERTICES`) or `max_gap_mm`, landmarks not of shape (22, 3), or
         no grid vertex inside the data.
     """
     height, width = _as_shape(shape)
@@ -349,12 +379,32 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
     grid, valid, source_uv, cloud, cloud_uv = _split_input(scan_or_points, uv)
     landmarks = empty_landmarks() if landmarks is None else as_landmarks(landmarks)
 
+    # Every step from here on reads depth along z and works in millimetres. A scan in
+    # another frame (axes swapped, a profile view) or unit is brought into the canonical
+    # one, without rounding its coordinates; the grid keeps the way back.
+    pose = scan_pose(landmarks)
+    scan_frame = None
+    if pose is not None and not pose.canonical:
+        landmarks = pose.to_canonical(landmarks)
+        if grid is not None:
+            grid = pose.to_canonical(grid)
+        else:
+            cloud = pose.to_canonical(cloud)
+        scan_frame = pose.transform.inverse()
+
     lattice = None
     if grid is not None:
         lattice = _fit_lattice(grid, valid)
         if lattice is None:
             cloud = grid[valid]
             cloud_uv = None if source_uv is None else source_uv[valid]
+            # a lattice whose rows and columns do not run along y and x (a depth image
+            # turned into the canonical frame) is still one
+            detected = _cloud_to_lattice(cloud, cloud_uv)
+            if detected is not None:
+                grid, valid, source_uv, lattice = detected
+            else:
+                grid = None
     else:
         detected = _cloud_to_lattice(cloud, cloud_uv)
         if detected is not None:
@@ -367,6 +417,11 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
         n_valid = len(cloud)
     if n_valid < 3:
         raise ValueError(f"scan_or_points has {n_valid} valid point(s); at least 3 are needed")
+    # one outlier far out would stretch the grid over it, leaving no vertex on the face
+    extent = np.abs(grid[valid] if lattice is not None else cloud).max()
+    if extent > MAX_COORDINATE:
+        raise ValueError(f"scan_or_points has a point {extent:.3g} mm from the origin, beyond the "
+                         f"+-{MAX_COORDINATE:.0e} mm tpscore accepts (an outlier, or not millimetres?)")
     if lattice is None:
         x_min, y_min = cloud[:, 0].min(), cloud[:, 1].min()
         x_max, y_max = cloud[:, 0].max(), cloud[:, 1].max()
@@ -393,7 +448,7 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
     points[..., 2] = z
     points[~mask] = np.nan
     snapped, index = _snap_landmarks(points.reshape(-1, 3), mask.reshape(-1), landmarks)
-    return FaceGrid(points, mask, grid_uv, snapped, index)
+    return FaceGrid(points, mask, grid_uv, snapped, index, scan_frame=scan_frame)
 
 
 def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
@@ -422,7 +477,9 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
         Naming the file: an unreadable scan, landmark file or image, or an image whose
         size does not fit the scan's u,v.
     """
-    path = Path(path)
+    path = Path(as_path(path))
+    # the size is checked before the scan is read, which may be large
+    shape = _as_shape(shape)
     # the scan first: a missing scan is the error to report, not its missing landmarks
     image = None
     if path.suffix.lower() == ".bnt":
@@ -449,7 +506,10 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
             landmarks = None
     else:
         landmarks = read_landmarks(landmarks_path)
-    grid = resample_scan(source, landmarks, shape, max_gap_mm=max_gap_mm)
+    try:
+        grid = resample_scan(source, landmarks, shape, max_gap_mm=max_gap_mm)
+    except ValueError as exc:
+        raise ValueError(f"{str(path)!r}: {exc}") from None
     if image is not None:
         grid.image = _as_colour_image(image)
     return grid
@@ -457,14 +517,19 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
 
 # --------------------------------------------------------------------------- helpers
 
-def _as_shape(shape) -> tuple[int, int]:
+def _as_shape(shape, name: str = "shape") -> tuple[int, int]:
     try:
+        if len(shape) != 2 or any(isinstance(v, (str, bytes, bool, np.bool_)) for v in shape):
+            raise TypeError
         height, width = (int(v) for v in shape)
         exact = all(float(v) == int(v) for v in shape)
-    except (TypeError, ValueError):
-        raise ValueError(f"shape must be two integers (H, W), got {shape!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"{name} must be two integers (H, W), got {shape!r}") from None
     if not exact or height < 2 or width < 2:
-        raise ValueError(f"shape must be two integers (H, W), each >= 2, got {shape!r}")
+        raise ValueError(f"{name} must be two integers (H, W), each >= 2, got {shape!r}")
+    if height * width > MAX_GRID_VERTICES:
+        raise ValueError(f"{name} {height} x {width} has {height * width:,} vertices; the largest grid has "
+                         f"{MAX_GRID_VERTICES:,} (1024 x 1024)")
     return height, width
 
 
@@ -481,15 +546,12 @@ def _split_input(scan_or_points, uv):
         if uv is not None:
             raise ValueError("uv: a BntScan brings its own u,v; do not pass uv with it")
         return scan_or_points.points, scan_or_points.valid, scan_or_points.uv, None, None
-    try:
-        array = np.asarray(scan_or_points, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"scan_or_points must be a BntScan or a numeric array: {exc}") from None
+    array = as_array(scan_or_points, "scan_or_points")
     if array.ndim == 3 and array.shape[2] == 3:
         valid = np.isfinite(array).all(axis=2)
         source_uv = None
         if uv is not None:
-            source_uv = np.asarray(uv, dtype=np.float64)
+            source_uv = as_array(uv, "uv")
             if source_uv.shape != array.shape[:2] + (2,):
                 raise ValueError(f"uv must have shape {array.shape[:2] + (2,)}, got {source_uv.shape}")
             if not np.isfinite(source_uv[valid]).all():
@@ -499,7 +561,7 @@ def _split_input(scan_or_points, uv):
         keep = np.isfinite(array).all(axis=1)
         cloud_uv = None
         if uv is not None:
-            cloud_uv = np.asarray(uv, dtype=np.float64)
+            cloud_uv = as_array(uv, "uv")
             if cloud_uv.shape != (len(array), 2):
                 raise ValueError(f"uv must have shape ({len(array)}, 2), got {cloud_uv.shape}")
             cloud_uv = cloud_uv[keep]

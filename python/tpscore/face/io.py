@@ -5,8 +5,9 @@ Formats:
 - Bosphorus ``.bnt`` depth scans (:func:`read_bnt`, :func:`write_bnt`);
 - Bosphorus ``.lm3`` landmark files (:func:`read_lm3`, :func:`write_lm3`), and
   landmarks as ``.csv`` or ``.json`` (:func:`read_landmarks`, :func:`write_landmarks`);
-- meshes and point clouds through trimesh (:func:`read_mesh`), and OBJ / PLY meshes
-  with a u,v map and vertex colours (:func:`write_mesh`).
+- meshes and point clouds through trimesh (:func:`read_mesh`), OBJ / PLY meshes
+  with a u,v map and vertex colours (:func:`write_mesh`), and an OBJ textured by an
+  image, with its MTL and PNG (:func:`write_textured_obj`).
 
 Landmarks are always a (22, 3) float64 array in Bosphorus order (see
 :mod:`tpscore.face.landmarks`) with NaN rows for the ones that are missing. Every reader
@@ -20,20 +21,23 @@ import csv
 import io as _stdio
 import json
 import math
-import os
 import struct
-import tempfile
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from .._validation import as_faces, as_points
+from .._files import (MAX_TEXT_FILE_BYTES, atomic_write, check_readable, open_for_reading, read_bytes,
+                      read_limited, regular_file_size)
+from .._validation import MAX_COORDINATE, as_array, as_faces, as_path, as_points
+from .image import as_colour_image
 from .landmarks import LANDMARK_NAMES, N_LANDMARKS, as_landmarks, empty_landmarks, landmark_index
 
 __all__ = [
     "BntScan",
+    "read_npz",
     "write_npz",
     "read_bnt",
     "write_bnt",
@@ -43,12 +47,26 @@ __all__ = [
     "write_landmarks",
     "read_mesh",
     "write_mesh",
+    "write_textured_obj",
+    "write_png",
     "read_image",
 ]
 
 #: Largest colour image read, in pixels: far beyond a face scanner's camera, and a guard
 #: against a small compressed file that would decompress into gigabytes.
 MAX_IMAGE_PIXELS = 64_000_000
+
+#: The largest .bnt grid read, in points (4096 x 4096, 640 MiB of values): far beyond a
+#: face scanner (a Bosphorus scan has about 200,000), and a guard against a forged
+#: header that asks for up to 65535 x 65535 points.
+MAX_BNT_POINTS = 4096 * 4096
+
+#: Landmark coordinates beyond this (mm) are refused (they are the kernels' limit, and
+#: a JSON integer of hundreds of digits would not even convert to a float).
+MAX_LANDMARK_COORDINATE = MAX_COORDINATE
+
+#: The largest mesh file read (1 GiB): an OBJ of ten million vertices.
+MAX_MESH_FILE_BYTES = 2**30
 
 # The background / hole marker that Bosphorus scanners (and make_scans.py) write.
 DEFAULT_BNT_ZMIN = -1.0e9
@@ -60,44 +78,10 @@ _BNT_LEN2 = struct.Struct("<I")
 
 # --------------------------------------------------------------------------- helpers
 
-def _atomic_write(path, data: bytes) -> None:
-    """Write `data` to `path` through a temporary file in the same folder, then rename.
-
-    The rename is atomic on POSIX and Windows, so a reader never sees a partial file
-    and an interrupted write leaves the previous file (if any) untouched.
-    """
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise ValueError(f"cannot write {str(path)!r}: folder {str(folder)!r} does not exist")
-    handle, tmp_name = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(handle, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp_name, path)
-    except BaseException:
-        try:
-            os.unlink(tmp_name)
-        except OSError:
-            pass
-        raise
-
-
-def _read_bytes(path) -> bytes:
-    try:
-        with open(path, "rb") as fh:
-            return fh.read()
-    except FileNotFoundError:
-        raise ValueError(f"{str(path)!r}: file not found") from None
-    except IsADirectoryError:
-        raise ValueError(f"{str(path)!r}: is a folder, not a file") from None
-    except OSError as exc:
-        raise ValueError(f"{str(path)!r}: cannot be read ({exc.strerror or exc})") from None
-
-
-def _read_text(path) -> list[str]:
-    """Lines of a text file, without line endings (accepts \\n, \\r\\n and \\r)."""
-    raw = _read_bytes(path)
+def _read_text(path, limit: int = MAX_TEXT_FILE_BYTES, what: str = "a landmark file") -> list[str]:
+    """Lines of a text file of at most `limit` bytes, without line endings (accepts
+    \\n, \\r\\n and \\r)."""
+    raw = read_bytes(path, limit, what)
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -124,11 +108,8 @@ def read_image(path) -> np.ndarray:
         larger than :data:`MAX_IMAGE_PIXELS`.
     """
 
+    path = check_readable(path, "image_path")
     where = repr(str(path))
-    if not os.path.exists(path):
-        raise ValueError(f"{where}: image file not found")
-    if os.path.isdir(path):
-        raise ValueError(f"{where}: is a folder, not an image file")
     try:
         with Image.open(path) as opened:
             width, height = opened.size
@@ -143,6 +124,14 @@ def read_image(path) -> np.ndarray:
     except (OSError, SyntaxError, Image.DecompressionBombError) as exc:
         raise ValueError(f"{where}: truncated or corrupt image ({exc})") from None
     return rgb
+
+
+def write_png(path, image) -> None:
+    """Write an (h, w, 3) uint8 RGB image as PNG (atomically)."""
+    picture = np.ascontiguousarray(as_colour_image(image))
+    buffer = _stdio.BytesIO()
+    Image.fromarray(picture, "RGB").save(buffer, format="PNG")
+    atomic_write(path, buffer.getvalue())
 
 
 # --------------------------------------------------------------------------- .bnt
@@ -180,7 +169,7 @@ class BntScan:
     def from_points(cls, points, *, image_name: str = "", zmin: float = DEFAULT_BNT_ZMIN) -> "BntScan":
         """A scan from (nrows, ncols, 3) points with NaN at background and holes; u, v are
         the pixel centres ((c + 0.5) / ncols, (r + 0.5) / nrows)."""
-        points = np.array(points, dtype=np.float64)
+        points = np.array(as_array(points, "points"), dtype=np.float64)
         if points.ndim != 3 or points.shape[2] != 3:
             raise ValueError(f"points must have shape (nrows, ncols, 3), got {points.shape}")
         nrows, ncols = points.shape[:2]
@@ -195,9 +184,26 @@ class BntScan:
         """Number of valid points."""
         return int(np.count_nonzero(self.valid))
 
+    def __repr__(self) -> str:
+        image = f"image {self.image_name!r}" if self.image_name else "no image"
+        return f"BntScan({self.nrows}x{self.ncols}, {self.n_valid} valid points, {image})"
+
     def valid_points(self) -> np.ndarray:
         """The valid points, (n_valid, 3), in row-major pixel order."""
         return self.points[self.valid]
+
+
+def _check_bnt_size(where: str, size: int, expected: int, nrows: int, ncols: int, *,
+                    stream: bool = False) -> None:
+    if size < expected:
+        raise ValueError(
+            f"{where}: truncated .bnt data: {nrows} x {ncols} points need {expected} bytes, "
+            f"the file has {size}"
+        )
+    if size > expected:
+        # a stream is read one byte past the data only
+        count = "at least 1" if stream else f"{size - expected}"
+        raise ValueError(f"{where}: {count} trailing bytes after the {nrows} x {ncols} .bnt points")
 
 
 def read_bnt(path) -> BntScan:
@@ -223,49 +229,56 @@ def read_bnt(path) -> BntScan:
         len2 != 5 nrows ncols, zero rows or columns, trailing bytes, a non-ASCII
         image name, non-finite zmin, or NaN/infinite values at valid points.
     """
-    raw = _read_bytes(path)
-    where = repr(str(path))
-    size = len(raw)
-    if size < _BNT_HEAD.size:
-        raise ValueError(
-            f"{where}: truncated .bnt header ({size} bytes; the fixed header needs {_BNT_HEAD.size})"
-        )
-    nrows, ncols, zmin, name_len = _BNT_HEAD.unpack_from(raw, 0)
-    if nrows == 0 or ncols == 0:
-        raise ValueError(f"{where}: .bnt grid of {nrows} x {ncols} points is empty")
-    if not math.isfinite(zmin):
-        raise ValueError(f"{where}: .bnt background marker zmin is {zmin}, not a finite number")
-    name_end = _BNT_HEAD.size + name_len
-    data_start = name_end + _BNT_LEN2.size
-    if size < data_start:
-        raise ValueError(
-            f"{where}: truncated .bnt header: image name of {name_len} bytes and the value "
-            f"count need {data_start} bytes, the file has {size}"
-        )
-    name_bytes = raw[_BNT_HEAD.size:name_end]
-    if not all(32 <= b < 127 for b in name_bytes):
-        raise ValueError(
-            f"{where}: .bnt image name is not printable ASCII ({name_bytes[:40]!r}); "
-            "the header is corrupt or this is not a .bnt file"
-        )
-    (len2,) = _BNT_LEN2.unpack_from(raw, name_end)
-    n_points = nrows * ncols
-    if len2 != 5 * n_points:
-        raise ValueError(
-            f"{where}: .bnt value count len2 = {len2} is not 5 * nrows * ncols = "
-            f"5 * {nrows} * {ncols} = {5 * n_points}"
-        )
-    expected = data_start + 8 * len2
-    if size < expected:
-        raise ValueError(
-            f"{where}: truncated .bnt data: {nrows} x {ncols} points need {expected} bytes, "
-            f"the file has {size}"
-        )
-    if size > expected:
-        raise ValueError(
-            f"{where}: {size - expected} trailing bytes after the {nrows} x {ncols} .bnt points"
-        )
-    values = np.frombuffer(raw, dtype="<f8", count=len2, offset=data_start)
+    with open_for_reading(path) as handle:
+        where = repr(str(handle.name))
+        file_size = regular_file_size(handle)
+        raw = read_limited(handle, _BNT_HEAD.size, where)
+        size = len(raw)
+        if size < _BNT_HEAD.size:
+            raise ValueError(
+                f"{where}: truncated .bnt header ({size} bytes; the fixed header needs {_BNT_HEAD.size})"
+            )
+        nrows, ncols, zmin, name_len = _BNT_HEAD.unpack_from(raw, 0)
+        if nrows == 0 or ncols == 0:
+            raise ValueError(f"{where}: .bnt grid of {nrows} x {ncols} points is empty")
+        if not math.isfinite(zmin):
+            raise ValueError(f"{where}: .bnt background marker zmin is {zmin}, not a finite number")
+        n_points = nrows * ncols
+        name_end = _BNT_HEAD.size + name_len
+        data_start = name_end + _BNT_LEN2.size
+        raw += read_limited(handle, data_start - size, where)
+        size = len(raw)
+        if size < data_start:
+            raise ValueError(
+                f"{where}: truncated .bnt header: image name of {name_len} bytes and the value "
+                f"count need {data_start} bytes, the file has {size}"
+            )
+        name_bytes = raw[_BNT_HEAD.size:name_end]
+        if not all(32 <= b < 127 for b in name_bytes):
+            raise ValueError(
+                f"{where}: .bnt image name is not printable ASCII ({name_bytes[:40]!r}); "
+                "the header is corrupt or this is not a .bnt file"
+            )
+        (len2,) = _BNT_LEN2.unpack_from(raw, name_end)
+        if len2 != 5 * n_points:
+            raise ValueError(
+                f"{where}: .bnt value count len2 = {len2} is not 5 * nrows * ncols = "
+                f"5 * {nrows} * {ncols} = {5 * n_points}"
+            )
+        # judged before the values are read: a forged header can announce 4.3e9 points
+        if n_points > MAX_BNT_POINTS:
+            raise ValueError(
+                f"{where}: .bnt grid of {nrows} x {ncols} points is larger than the "
+                f"{MAX_BNT_POINTS:,} points tpscore reads")
+        expected = data_start + 8 * len2
+        if file_size is not None:
+            # A regular file's size is known: judge it before reading the values.
+            _check_bnt_size(where, file_size, expected, nrows, ncols)
+        # One byte more than the header announces, to tell a stream's trailing bytes apart.
+        body = read_limited(handle, expected - data_start + 1, where)
+    if file_size is None:
+        _check_bnt_size(where, data_start + len(body), expected, nrows, ncols, stream=True)
+    values = np.frombuffer(body, dtype="<f8", count=len2)
     columns = values.reshape(5, nrows, ncols)  # x, y, z, u, v: one block each
     xyz = columns[:3]
     valid = ~((xyz == zmin).any(axis=0))
@@ -304,8 +317,8 @@ def write_bnt(path, scan: BntScan) -> None:
     nrows, ncols = int(scan.nrows), int(scan.ncols)
     if not (0 < nrows <= 0xFFFF and 0 < ncols <= 0xFFFF):
         raise ValueError(f"scan grid {nrows} x {ncols} does not fit a .bnt (1..65535 each)")
-    points = np.asarray(scan.points, dtype=np.float64)
-    uv = np.asarray(scan.uv, dtype=np.float64)
+    points = as_array(scan.points, "scan.points")
+    uv = as_array(scan.uv, "scan.uv")
     valid = np.asarray(scan.valid, dtype=bool)
     if points.shape != (nrows, ncols, 3) or uv.shape != (nrows, ncols, 2) or valid.shape != (nrows, ncols):
         raise ValueError(
@@ -332,7 +345,7 @@ def write_bnt(path, scan: BntScan) -> None:
     blocks[3] = uv[..., 0]
     blocks[4] = uv[..., 1]
     header = _BNT_HEAD.pack(nrows, ncols, zmin, len(name)) + name + _BNT_LEN2.pack(blocks.size)
-    _atomic_write(path, header + blocks.tobytes())
+    atomic_write(path, header + blocks.tobytes())
 
 
 # --------------------------------------------------------------------------- .lm3
@@ -384,7 +397,7 @@ def read_lm3(path, *, return_names: bool = False):
         raise ValueError(f"{where}: .lm3 file ends before the '<N> landmarks:' line")
     count_words = lines[k].split()
     if len(count_words) != 2 or count_words[1].lower() != "landmarks:" or not count_words[0].isdigit():
-        fail(k, f"expected '<N> landmarks:', got {lines[k]!r}")
+        fail(k, f"expected '<N> landmarks:', got {lines[k][:80]!r}")
     count = int(count_words[0])
     if count > N_LANDMARKS:
         fail(k, f"announces {count} landmarks; Bosphorus has {N_LANDMARKS}")
@@ -401,7 +414,7 @@ def read_lm3(path, *, return_names: bool = False):
         try:
             index = landmark_index(name)
         except ValueError:
-            fail(k, f"unknown landmark name {name!r}")
+            fail(k, f"unknown landmark name {name[:80]!r}")
         if np.isfinite(landmarks[index]).any():
             fail(k, f"duplicate landmark {name!r}")
         words = lines[k + 1].split()
@@ -410,9 +423,9 @@ def read_lm3(path, *, return_names: bool = False):
         except ValueError:
             coords = []
         if len(coords) != 3:
-            fail(k + 1, f"expected 'x y z' for {name!r}, got {lines[k + 1]!r}")
-        if not all(math.isfinite(v) for v in coords):
-            fail(k + 1, f"non-finite coordinates for {name!r}: {lines[k + 1]!r}")
+            fail(k + 1, f"expected 'x y z' for {name!r}, got {lines[k + 1][:120]!r}")
+        if not all(abs(v) <= MAX_LANDMARK_COORDINATE for v in coords):
+            fail(k + 1, f"non-finite or out-of-range coordinates for {name!r}: {lines[k + 1][:120]!r}")
         landmarks[index] = coords
         names.append(LANDMARK_NAMES[index])
         k += 2
@@ -443,7 +456,7 @@ def write_lm3(path, landmarks, *, header: str = "3D landmark points") -> None:
     for i in present:
         lines.append(LANDMARK_NAMES[i])
         lines.append(" ".join(_format_float(v) for v in array[i]))
-    _atomic_write(path, ("\n".join(lines) + "\n").encode("ascii"))
+    atomic_write(path, ("\n".join(lines) + "\n").encode("ascii"))
 
 
 # --------------------------------------------------------------------------- CSV / JSON
@@ -457,7 +470,10 @@ def _parse_float(text: str) -> float:
 
 def _read_landmarks_csv(path) -> np.ndarray:
     where = repr(str(path))
-    rows = list(csv.reader(_stdio.StringIO("\n".join(_read_text(path)))))
+    try:
+        rows = list(csv.reader(_stdio.StringIO("\n".join(_read_text(path)))))
+    except csv.Error as exc:  # an unclosed quote, a field over the csv module's size limit
+        raise ValueError(f"{where}: not a readable CSV file ({exc})") from None
     # A blank line is no row; ",," is a row of empty cells (a missing landmark).
     numbered = [(i, [cell.strip() for cell in row]) for i, row in enumerate(rows) if row]
     if not numbered:
@@ -496,7 +512,7 @@ def _read_landmarks_csv(path) -> np.ndarray:
             try:
                 index = landmark_index(row[0])
             except ValueError:
-                raise ValueError(f"{where}, line {line + 1}: unknown landmark name {row[0]!r}") from None
+                raise ValueError(f"{where}, line {line + 1}: unknown landmark name {row[0][:80]!r}") from None
             if np.isfinite(landmarks[index]).any():
                 raise ValueError(f"{where}, line {line + 1}: duplicate landmark {row[0]!r}")
         else:
@@ -506,10 +522,12 @@ def _read_landmarks_csv(path) -> np.ndarray:
         try:
             coords = [_parse_float(cell) for cell in cells]
         except ValueError:
-            raise ValueError(f"{where}, line {line + 1}: unparsable coordinates {cells}") from None
+            raise ValueError(f"{where}, line {line + 1}: unparsable coordinates {str(cells)[:120]}") from None
         finite = [math.isfinite(v) for v in coords]
         if any(math.isinf(v) for v in coords) or (any(finite) and not all(finite)):
             raise ValueError(f"{where}, line {line + 1}: non-finite coordinates {cells}")
+        if any(abs(v) > MAX_LANDMARK_COORDINATE for v in coords if math.isfinite(v)):
+            raise ValueError(f"{where}, line {line + 1}: coordinates beyond +-{MAX_LANDMARK_COORDINATE:.0e} mm")
         if named and not all(finite):
             raise ValueError(f"{where}, line {line + 1}: named landmark {row[0]!r} without coordinates")
         landmarks[index] = coords
@@ -522,14 +540,19 @@ def _read_landmarks_json(path) -> np.ndarray:
         data = json.loads("\n".join(_read_text(path)))
     except json.JSONDecodeError as exc:
         raise ValueError(f"{where}, line {exc.lineno}: invalid JSON ({exc.msg})") from None
+    except RecursionError:
+        raise ValueError(f"{where}: JSON nested too deeply to be landmarks") from None
+    except ValueError as exc:  # an integer of more digits than Python converts
+        raise ValueError(f"{where}: invalid JSON ({exc})") from None
     landmarks = empty_landmarks()
 
     def coords_of(value, label: str) -> list[float]:
         if (not isinstance(value, (list, tuple)) or len(value) != 3
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
             raise ValueError(f"{where}: {label} must be [x, y, z] numbers, got {value!r}")
-        if not all(math.isfinite(v) for v in value):
-            raise ValueError(f"{where}: {label} has non-finite coordinates {value!r}")
+        if not all(abs(v) <= MAX_LANDMARK_COORDINATE for v in value):
+            raise ValueError(f"{where}: {label} has non-finite or out-of-range coordinates "
+                             f"(beyond +-{MAX_LANDMARK_COORDINATE:.0e} mm): {str(value)[:120]}")
         return [float(v) for v in value]
 
     if isinstance(data, dict):
@@ -538,7 +561,7 @@ def _read_landmarks_json(path) -> np.ndarray:
             try:
                 index = landmark_index(name)
             except ValueError:
-                raise ValueError(f"{where}: unknown landmark name {name!r}") from None
+                raise ValueError(f"{where}: unknown landmark name {str(name)[:80]!r}") from None
             if index in seen:
                 raise ValueError(f"{where}: duplicate landmark {name!r} (also as {seen[index]!r})")
             seen[index] = name
@@ -573,7 +596,7 @@ def read_landmarks(path) -> np.ndarray:
     -------
     (22, 3) float64, mm, NaN rows for missing landmarks.
     """
-    suffix = Path(path).suffix.lower()
+    suffix = Path(as_path(path)).suffix.lower()
     if suffix == ".lm3":
         return read_lm3(path)
     if suffix == ".csv":
@@ -586,7 +609,7 @@ def read_landmarks(path) -> np.ndarray:
 def write_landmarks(path, landmarks) -> None:
     """Write 22 landmarks as ``.lm3``, ``.csv`` (``name,x,y,z`` with a header) or ``.json``
     (``{name: [x, y, z]}``), chosen by the suffix. Missing (NaN) landmarks are omitted."""
-    suffix = Path(path).suffix.lower()
+    suffix = Path(as_path(path)).suffix.lower()
     array = as_landmarks(landmarks)
     present = np.flatnonzero(np.isfinite(array).all(axis=1))
     if suffix == ".lm3":
@@ -594,10 +617,10 @@ def write_landmarks(path, landmarks) -> None:
     elif suffix == ".csv":
         lines = ["name,x,y,z"]
         lines += [",".join([LANDMARK_NAMES[i]] + [_format_float(v) for v in array[i]]) for i in present]
-        _atomic_write(path, ("\n".join(lines) + "\n").encode("ascii"))
+        atomic_write(path, ("\n".join(lines) + "\n").encode("ascii"))
     elif suffix == ".json":
         data = {LANDMARK_NAMES[i]: [float(v) for v in array[i]] for i in present}
-        _atomic_write(path, (json.dumps(data, indent=1) + "\n").encode("ascii"))
+        atomic_write(path, (json.dumps(data, indent=1) + "\n").encode("ascii"))
     else:
         raise ValueError(f"{str(path)!r}: unknown landmark file type {suffix!r} (use .lm3, .csv or .json)")
 
@@ -623,13 +646,19 @@ def read_mesh(path):
     # trimesh takes a third of a second to import; only mesh files need it
     import trimesh
 
+    path = check_readable(path)
     where = repr(str(path))
-    if not Path(path).is_file():
-        raise ValueError(f"{where}: file not found")
-    if Path(path).suffix.lower() == ".obj":
+    if path.suffix.lower() == ".obj":
         # trimesh drops OBJ vertices no face uses once texture coordinates are present,
         # which would break the correspondence with the file's vertex order.
         return _read_obj(path)
+    with open_for_reading(path) as handle:
+        size = regular_file_size(handle)
+    if size is None:
+        raise ValueError(f"{where}: not a regular file (trimesh reads meshes from files only)")
+    if size > MAX_MESH_FILE_BYTES:
+        raise ValueError(f"{where}: the file is {size:,} bytes; tpscore reads meshes of at most "
+                         f"{MAX_MESH_FILE_BYTES:,}")
     try:
         # process=False keeps the vertex order (no merging); fix_texture=False stops the
         # PLY reader from splitting vertices along u,v seams.
@@ -648,6 +677,11 @@ def read_mesh(path):
         raise ValueError(f"{where}: the file holds no vertices")
     if not np.isfinite(vertices).all():
         raise ValueError(f"{where}: the file has NaN or infinite vertex coordinates")
+    if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
+        # trimesh (with process=False) passes a PLY's indices through unchecked
+        bad = int(faces[(faces < 0) | (faces >= len(vertices))][0])
+        raise ValueError(f"{where}: a face refers to vertex {bad}, but the file has vertices 0 to "
+                         f"{len(vertices) - 1}")
     return vertices, np.ascontiguousarray(faces)
 
 
@@ -656,7 +690,7 @@ def _read_obj(path):
     where = repr(str(path))
     vertices: list[list[float]] = []
     faces: list[tuple[int, int, int]] = []
-    for number, line in enumerate(_read_text(path), start=1):
+    for number, line in enumerate(_read_text(path, MAX_MESH_FILE_BYTES, "a mesh file"), start=1):
         words = line.split()
         if not words:
             continue
@@ -733,19 +767,21 @@ def write_mesh(path, vertices, faces, *, uv=None, vertex_colors=None) -> None:
     if n >= 2**31:
         raise ValueError(f"write_mesh stores vertex indices as int32; {n} vertices are too many")
     colors = None if vertex_colors is None else _colors_uint8(vertex_colors, n)
-    suffix = Path(path).suffix.lower()
+    suffix = Path(as_path(path)).suffix.lower()
     if suffix == ".obj":
         data = _obj_bytes(vertices, faces, uv, colors)
     elif suffix == ".ply":
         data = _ply_bytes(vertices, faces, uv, colors)
     else:
         raise ValueError(f"{str(path)!r}: write_mesh writes .obj or .ply, not {suffix!r}")
-    _atomic_write(path, data)
+    atomic_write(path, data)
 
 
-def _obj_bytes(vertices, faces, uv, colors) -> bytes:
+def _obj_bytes(vertices, faces, uv, colors, header: tuple[str, ...] = ()) -> bytes:
     out = _stdio.StringIO()
     out.write("# written by tpscore; units mm\n")
+    for line in header:
+        out.write(line + "\n")
     # %.17g round-trips float64 exactly; np.savetxt formats the whole block in C.
     if colors is None:
         np.savetxt(out, vertices, fmt="v %.17g %.17g %.17g")
@@ -761,6 +797,59 @@ def _obj_bytes(vertices, faces, uv, colors) -> bytes:
         else:
             np.savetxt(out, one_based, fmt="f %d %d %d")
     return out.getvalue().encode("ascii")
+
+
+def write_textured_obj(path, vertices, faces, uv, image, *, material: str = "skin") -> tuple[Path, Path, Path]:
+    """Write a mesh textured by an image: ``NAME.obj``, ``NAME.mtl`` and ``NAME_texture.png``.
+
+    MeshLab, Blender, trimesh and most viewers show the mesh in the image's colours. The
+    image and the material are written first, the OBJ last (each atomically), so an OBJ
+    on disk always finds its material and image beside it.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        The ``.obj`` file; the ``.mtl`` and the ``_texture.png`` take its stem, in its
+        folder (the image's name differs from the stem so that a picture named like the
+        mesh, ``result.obj`` beside ``result.png``, does not overwrite the texture).
+    vertices : (n, 3) array-like, mm, finite
+    faces : (m, 3) integer array-like
+    uv : (n, 2) array-like
+        Each vertex's place in the image in tpscore's convention (u to the right, v
+        DOWN, in [0, 1], as :attr:`FaceGrid.uv <tpscore.face.grid.FaceGrid.uv>` and a
+        ``.bnt`` hold it). The OBJ stores ``1 - v``, since OBJ viewers put v = 0 at the
+        bottom of the image.
+    image : (h, w, 3) uint8
+        The texture, for example :attr:`FaceGrid.image <tpscore.face.grid.FaceGrid.image>`.
+    material : str
+        The material's name (letters, digits, ``_`` and ``-``).
+
+    Returns
+    -------
+    (obj_path, mtl_path, png_path)
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".obj":
+        raise ValueError(f"{str(path)!r}: write_textured_obj writes an .obj (with .mtl and .png beside it)")
+    if not isinstance(material, str) or not material or not all(c.isalnum() or c in "_-" for c in material):
+        raise ValueError(f"material must be a name of letters, digits, _ and -, got {material!r}")
+    vertices = as_points(vertices, "vertices")
+    faces = as_faces(np.asarray(faces).reshape(-1, 3) if np.size(faces) == 0 else faces, len(vertices))
+    uv = as_points(uv, "uv", dim=2)
+    if len(uv) != len(vertices):
+        raise ValueError(f"uv must have shape ({len(vertices)}, 2), got {uv.shape}")
+    picture = as_colour_image(image, "image")
+    mtl_path, png_path = path.with_suffix(".mtl"), path.with_name(f"{path.stem}_texture.png")
+    write_png(png_path, picture)
+    atomic_write(mtl_path, (
+        "# written by tpscore\n"
+        f"newmtl {material}\n"
+        "Ka 1 1 1\nKd 1 1 1\nKs 0 0 0\nNs 1\nd 1\nillum 1\n"
+        f"map_Kd {png_path.name}\n").encode("utf-8"))
+    flipped = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])
+    atomic_write(path, _obj_bytes(vertices, faces, flipped, None,
+                                   (f"mtllib {mtl_path.name}", f"usemtl {material}")))
+    return path, mtl_path, png_path
 
 
 def _ply_bytes(vertices, faces, uv, colors) -> bytes:
@@ -788,9 +877,61 @@ def _ply_bytes(vertices, faces, uv, colors) -> bytes:
     return ("\n".join(header) + "\n").encode("ascii") + table.tobytes() + face_table.tobytes()
 
 
+#: The largest .npz read, and the most its arrays may hold once decompressed (2 GiB each):
+#: a compressed archive can announce gigabytes in a few bytes.
+MAX_NPZ_BYTES = 2**31
+
+
+def read_npz(path, fields=(), *, what: str = "an .npz file") -> dict:
+    """All arrays of a NumPy ``.npz`` archive, read eagerly and safely.
+
+    Pickled objects are refused (they could run code); an archive larger than
+    :data:`MAX_NPZ_BYTES`, or whose members announce more than that decompressed, is
+    refused before anything is inflated.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    fields : sequence of str
+        Names that must be present.
+    what : str
+        What the file should be, for the messages ("an average face model").
+
+    Returns
+    -------
+    dict of name -> ndarray
+
+    Raises
+    ------
+    ValueError
+        Naming the file: missing, not an .npz archive, corrupt, too large, pickled
+        data, or lacking one of `fields`.
+    """
+    raw = read_bytes(path, MAX_NPZ_BYTES, what)
+    where = repr(str(path))
+    try:
+        with zipfile.ZipFile(_stdio.BytesIO(raw)) as archive:
+            announced = sum(info.file_size for info in archive.infolist())
+            if announced > MAX_NPZ_BYTES:
+                raise ValueError(f"{where}: its arrays would take {announced:,} bytes decompressed; "
+                                 f"{what} holds at most {MAX_NPZ_BYTES:,}")
+        with np.load(_stdio.BytesIO(raw), allow_pickle=False) as data:
+            arrays = {name: np.asarray(data[name]) for name in data.files}
+    except ValueError as exc:
+        if str(exc).startswith(where):
+            raise
+        raise ValueError(f"{where}: not {what}: {exc}") from None
+    except Exception as exc:  # zipfile, zlib and the .npy header parser raise many types
+        raise ValueError(f"{where}: not {what}: corrupt .npz archive ({type(exc).__name__}: {exc})") from None
+    missing = [name for name in fields if name not in arrays]
+    if missing:
+        raise ValueError(f"{where}: not {what}: lacks the array(s) {', '.join(missing)}")
+    return arrays
+
+
 def write_npz(path, **arrays) -> None:
     """Write arrays to a compressed ``.npz`` (atomically, like every writer here)."""
 
     buffer = _stdio.BytesIO()
     np.savez_compressed(buffer, **arrays)
-    _atomic_write(path, buffer.getvalue())
+    atomic_write(path, buffer.getvalue())

@@ -10,6 +10,7 @@ from typing import Mapping
 
 import numpy as np
 
+from .._validation import MAX_COORDINATE, as_array
 from ..rbf import TPS
 
 __all__ = [
@@ -66,16 +67,13 @@ def landmark_index(name: str) -> int:
         return _INDEX[str(name).strip().lower()]
     except KeyError:
         raise ValueError(
-            f"unknown landmark name {name!r}; known names: {', '.join(LANDMARK_NAMES)}"
+            f"unknown landmark name {str(name)[:80]!r}; known names: {', '.join(LANDMARK_NAMES)}"
         ) from None
 
 
 def as_landmarks(landmarks, name: str = "landmarks") -> np.ndarray:
     """A (22, 3) float64 copy; rows are either all finite or all NaN (missing)."""
-    try:
-        array = np.array(landmarks, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be a numeric (22, 3) array: {exc}") from None
+    array = np.array(as_array(landmarks, name), dtype=np.float64)
     if array.shape != (N_LANDMARKS, 3):
         raise ValueError(f"{name} must have shape ({N_LANDMARKS}, 3), got {array.shape}")
     finite = np.isfinite(array)
@@ -86,6 +84,10 @@ def as_landmarks(landmarks, name: str = "landmarks") -> np.ndarray:
             f"{name} row {bad} ({LANDMARK_NAMES[bad]}) has non-finite coordinates "
             f"{array[bad].tolist()}; a missing landmark is a row of three NaN"
         )
+    if (np.abs(array[finite]) > MAX_COORDINATE).any():
+        bad = np.flatnonzero((np.abs(np.where(finite, array, 0.0)) > MAX_COORDINATE).any(axis=1))[0]
+        raise ValueError(f"{name} row {bad} ({LANDMARK_NAMES[bad]}) has coordinates beyond "
+                         f"+-{MAX_COORDINATE:.0e} mm: {array[bad].tolist()}")
     return array
 
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .._validation import as_points
+from ..geometry import FrameTransform, paired_points, similarity_transform
 from ..spatial import KDTree, MeshSurface
 from .grid import FaceGrid
 from .landmarks import N_LANDMARKS, anchor_point, as_landmarks, landmark_index
@@ -45,58 +45,6 @@ __all__ = [
 #: The four landmarks of the method's affine normalisation (B's columns).
 AFFINE_LANDMARKS = ("Outer left eye corner", "Outer right eye corner", "Chin middle", "Nose tip")
 NORMALISATION_METHODS = ("similarity", "affine", "none")
-
-
-@dataclass(frozen=True)
-class FrameTransform:
-    """An affine map between two frames, as a 4 x 4 homogeneous matrix.
-
-    ``apply`` maps points from the source frame (e.g. the scan) to the target frame
-    (e.g. the reference face); ``apply_inverse`` maps them back.
-    """
-
-    matrix: np.ndarray
-    method: str = "affine"
-
-    def __post_init__(self):
-        m = np.array(self.matrix, dtype=np.float64)
-        if m.shape != (4, 4) or not np.isfinite(m).all():
-            raise ValueError(f"matrix must be a finite 4 x 4 array, got shape {m.shape}")
-        if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
-            raise ValueError("matrix must be affine: its last row must be [0, 0, 0, 1]")
-        if abs(np.linalg.det(m[:3, :3])) < 1e-12:
-            raise ValueError("matrix is singular: the transform collapses space")
-        m.setflags(write=False)
-        object.__setattr__(self, "matrix", m)
-
-    @classmethod
-    def identity(cls) -> "FrameTransform":
-        return cls(np.eye(4), "none")
-
-    @property
-    def scale(self) -> float:
-        """Mean linear scale factor (cube root of the determinant)."""
-        return float(abs(np.linalg.det(self.matrix[:3, :3])) ** (1.0 / 3.0))
-
-    def apply(self, points) -> np.ndarray:
-        """Map (..., 3) points into the target frame (NaN rows stay NaN)."""
-        p = np.asarray(points, dtype=np.float64)
-        return p @ self.matrix[:3, :3].T + self.matrix[:3, 3]
-
-    def apply_inverse(self, points) -> np.ndarray:
-        """Map (..., 3) points from the target frame back to the source frame."""
-        return self.inverse().apply(points)
-
-    def apply_vectors(self, vectors) -> np.ndarray:
-        """Map displacement vectors (no translation)."""
-        return np.asarray(vectors, dtype=np.float64) @ self.matrix[:3, :3].T
-
-    def inverse(self) -> "FrameTransform":
-        return FrameTransform(np.linalg.inv(self.matrix), self.method)
-
-    def then(self, other: "FrameTransform") -> "FrameTransform":
-        """The transform that applies ``self`` first, then ``other``."""
-        return FrameTransform(other.matrix @ self.matrix, f"{self.method}+{other.method}")
 
 
 @dataclass(frozen=True)
@@ -154,61 +102,6 @@ def face_frame(landmarks) -> FaceFrame:
     return FaceFrame(origin=tip, axes=np.stack([x, y, z]), facial_unit=unit, forehead=forehead)
 
 
-def _paired(landmarks, reference, name):
-    lm = as_points(landmarks, name, finite=False)
-    ref = as_points(reference, "reference landmarks", finite=False)
-    if lm.shape != ref.shape:
-        raise ValueError(f"{name} has shape {lm.shape} but the reference has {ref.shape}")
-    both = np.isfinite(lm).all(axis=1) & np.isfinite(ref).all(axis=1)
-    return lm, ref, both
-
-
-def similarity_transform(source, target, *, scale: bool = True, weights=None) -> FrameTransform:
-    """Least-squares similarity (rotation, optional uniform scale, translation) source -> target.
-
-    Parameters
-    ----------
-    source, target : (n, 3) array_like
-        Corresponding points (mm); rows with NaN in either are ignored.
-    scale : bool
-        Fit a uniform scale; False gives a rigid transform.
-    weights : (n,) array_like, optional
-        Non-negative weight per pair.
-
-    Raises
-    ------
-    ValueError
-        Fewer than 3 usable pairs, or pairs on one line (rotation undetermined).
-    """
-    src, dst, both = _paired(source, target, "source")
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64).ravel()
-    if w.shape != (len(src),) or not np.isfinite(w).all() or (w < 0).any():
-        raise ValueError(f"weights must be {len(src)} finite non-negative numbers")
-    use = both & (w > 0)
-    if use.sum() < 3:
-        raise ValueError(
-            f"a similarity transform needs at least 3 landmark pairs present in both faces, "
-            f"got {int(use.sum())}"
-        )
-    src, dst, w = src[use], dst[use], w[use] / w[use].sum()
-    mu_s, mu_d = w @ src, w @ dst
-    xs, xd = src - mu_s, dst - mu_d
-    cov = (xd * w[:, None]).T @ xs
-    u, sing, vt = np.linalg.svd(cov)
-    if sing[1] < 1e-9 * max(sing[0], 1e-300):
-        raise ValueError("the landmark pairs lie on one line: the rotation is undetermined")
-    d = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        d[2, 2] = -1.0  # a reflection is not a pose: flip the weakest axis instead
-    rotation = u @ d @ vt
-    var_s = float((w * (xs**2).sum(axis=1)).sum())
-    s = float(np.trace(np.diag(sing) @ d) / var_s) if scale else 1.0
-    m = np.eye(4)
-    m[:3, :3] = s * rotation
-    m[:3, 3] = mu_d - s * rotation @ mu_s
-    return FrameTransform(m, "similarity" if scale else "rigid")
-
-
 def thesis_affine_transform(landmarks, reference) -> FrameTransform:
     """The method's affine normalisation T = A B^-1 after moving the nose tip to the origin.
 
@@ -222,7 +115,7 @@ def thesis_affine_transform(landmarks, reference) -> FrameTransform:
     ValueError
         One of the four landmarks is missing, or they are coplanar (B singular).
     """
-    lm, ref, both = _paired(landmarks, reference, "landmarks")
+    lm, ref, both = paired_points(landmarks, reference, "landmarks", "reference landmarks")
     if len(lm) != N_LANDMARKS:
         raise ValueError(f"landmarks must have shape ({N_LANDMARKS}, 3), got {lm.shape}")
     idx = [landmark_index(n) for n in AFFINE_LANDMARKS]

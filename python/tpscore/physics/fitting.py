@@ -22,13 +22,13 @@ map from a template already fitted by other means (vertex for vertex).
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any, Callable, Mapping
+from typing import Callable
 
 import numpy as np
 
 from .._validation import as_points
-from ..adaptation import AdaptResult, adapt
-from ..correspondence import spread_vertices
+from ..adaptation import AdaptOptions, AdaptResult, adapt
+from ..adaptation.correspondence import spread_vertices
 from ..face.landmarks import landmark_index
 from ..face.normalise import face_frame
 from ..rbf import RBF
@@ -140,7 +140,7 @@ def _carry_sphincter(muscle: SphincterMuscle, mapping, template_landmarks, fitte
 
 
 def fit_head(scan, scan_landmarks, template: Head | None = None, *,
-             adapt_options: Mapping[str, Any] | None = None) -> tuple:
+             adapt_options: AdaptOptions | None = None) -> tuple:
     """Fit the template head to a scan and carry its physical structure along.
 
     Parameters
@@ -151,7 +151,7 @@ def fit_head(scan, scan_landmarks, template: Head | None = None, *,
         The scan's landmarks (NaN where missing).
     template : Head, optional
         Default: the shipped template (:func:`load_template`).
-    adapt_options : mapping, optional
+    adapt_options : AdaptOptions, optional
         Settings of :func:`tpscore.adapt` (default: its own).
 
     Returns
@@ -164,12 +164,14 @@ def fit_head(scan, scan_landmarks, template: Head | None = None, *,
     template = load_template() if template is None else template
     if not isinstance(template, Head):
         raise ValueError(f"template must be a tpscore.physics.Head, got {type(template).__name__}")
-    result = _adapt_skin(template, scan, scan_landmarks, dict(adapt_options or {}))
+    if adapt_options is not None and not isinstance(adapt_options, AdaptOptions):
+        raise ValueError(f"adapt_options must be a tpscore.AdaptOptions, got {type(adapt_options).__name__}")
+    result = _adapt_skin(template, scan, scan_landmarks, adapt_options or AdaptOptions())
     return carry_head(template, result), result
 
 
-def _adapt_skin(template: Head, scan, scan_landmarks, adapt_options: dict) -> AdaptResult:
+def _adapt_skin(template: Head, scan, scan_landmarks, adapt_options: AdaptOptions) -> AdaptResult:
     # The one place the physical skin calls the template adaptation (DESIGN.md,
     # method 2, of which the skin is the last stage).
     return adapt((template.vertices, template.faces), scan, template.landmark_vertices, scan_landmarks,
-                 **adapt_options)
+                 options=adapt_options)

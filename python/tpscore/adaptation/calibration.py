@@ -21,9 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._validation import as_points
-from .face.landmarks import landmark_index
-from .face.normalise import FrameTransform, similarity_transform
+from .._validation import as_points
+from ..face.landmarks import landmark_index
+from ..face.normalise import FrameTransform, similarity_transform
 
 __all__ = [
     "AxesCalibration",
@@ -112,7 +112,12 @@ def _group_mean(landmarks: np.ndarray, names, role: str) -> np.ndarray:
 
 
 def _face_frame(landmarks: np.ndarray, pairs, reference, who: str):
-    """Orthonormal frame (columns x, y, z), reference length and centre of one face."""
+    """Orthonormal frame (columns x, y, z), reference length and centre of one face.
+
+    Not :func:`tpscore.face.normalise.face_frame`: the method's calibration builds its
+    axes from configurable pairs and groups, each averaged over the members present,
+    so that a missing landmark does not stop it.
+    """
     differences = []
     for left, right in pairs:
         a, b = landmarks[landmark_index(left)], landmarks[landmark_index(right)]

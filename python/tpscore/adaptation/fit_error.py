@@ -6,7 +6,8 @@
   scan) gets weight 0;
 * the marker error Em: the mean squared distance between marker pairs that took no
   part in the fit (held-out landmarks, for example);
-* E = alpha Ed + beta Em, which the multilevel fit follows to its minimum.
+* E = alpha Ed + beta Em, which the multilevel fit follows to its minimum
+  (:class:`LevelScorer` computes all three for each level).
 """
 from __future__ import annotations
 
@@ -14,9 +15,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .spatial import KDTree
+from ..geometry import robust_scale, vertex_adjacency
+from ..mesh import vertex_normals
+from ..spatial import KDTree
+from .result import evaluate_fields
 
-__all__ = ["DistanceError", "distance_error", "marker_error", "combined_error", "surface_noise"]
+__all__ = ["DistanceError", "LevelScore", "LevelScorer", "distance_error", "marker_error", "combined_error",
+           "surface_noise"]
 
 # Nearest scan vertices examined for a compatible one; beyond 8 the nearest compatible
 # vertex is almost always farther than the threshold anyway.
@@ -99,19 +104,76 @@ def surface_noise(vertices, faces, normals) -> float:
     s * sqrt(1 + 1/deg). The median absolute offset (x 1.4826) ignores the few vertices
     on sharp features. On a smooth surface sampled finely the curvature adds little.
     """
-    import scipy.sparse as sp
-
-    n = len(vertices)
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    edges = np.unique(np.sort(edges, axis=1), axis=0)
-    if len(edges) == 0:
+    adjacency = vertex_adjacency(len(vertices), faces)
+    if adjacency.nnz == 0:
         return float("nan")
-    ones = np.ones(len(edges))
-    adjacency = sp.coo_matrix((np.r_[ones, ones], (np.r_[edges[:, 0], edges[:, 1]],
-                                                    np.r_[edges[:, 1], edges[:, 0]])), shape=(n, n)).tocsr()
     degree = np.asarray(adjacency.sum(axis=1)).ravel()
     inner = degree >= 3
     mean = (adjacency @ vertices)[inner] / degree[inner, None]
     offset = np.abs(np.einsum("ij,ij->i", vertices[inner] - mean, normals[inner]))
     offset /= np.sqrt(1.0 + 1.0 / degree[inner])
-    return float(1.4826 * np.median(offset)) if len(offset) else float("nan")
+    return robust_scale(offset) if len(offset) else float("nan")
+
+
+class LevelScore(NamedTuple):
+    """The error figures of one level's fit (Ed and Em in the scan's mm^2)."""
+
+    distance_error: float
+    marker_error: float
+    error: float
+    coverage: float
+    normals: np.ndarray
+    """(n, 3) unit vertex normals of the fitted template (the next level pairs along them)."""
+
+
+class LevelScorer:
+    """Ed, Em, E and the coverage of a fitted template, the same way at every level.
+
+    Parameters
+    ----------
+    template_faces : (m, 3) int ndarray
+    scan_tree : KDTree
+        Over the scan vertices (template frame).
+    scan_normals : (N, 3) ndarray
+        Their unit normals.
+    scan_rim : (N,) bool ndarray
+        Scan vertices on its open boundary.
+    threshold : float
+        Ed's compatibility distance (mm, template frame).
+    vertex_weights : (n,) ndarray or None
+        Ed's per-vertex weights.
+    markers : ((m, 3), (m, 3)) ndarray
+        Marker pairs (template points, calibrated scan points); m may be 0.
+    covered : (n,) bool ndarray
+        The vertices over which the coverage is judged.
+    scale : float
+        The calibration's scale: the errors are reported in the scan's mm^2.
+    alpha, beta : float
+        Weights of Ed and Em in E.
+    """
+
+    def __init__(self, template_faces, scan_tree: KDTree, scan_normals, scan_rim, *, threshold: float,
+                 vertex_weights, markers, covered, scale: float, alpha: float, beta: float):
+        self.template_faces = template_faces
+        self.scan_tree = scan_tree
+        self.scan_normals = scan_normals
+        self.scan_rim = scan_rim
+        self.threshold = threshold
+        self.vertex_weights = vertex_weights
+        self.marker_template, self.marker_scan = markers
+        weights = np.ones(len(covered)) if vertex_weights is None else vertex_weights
+        self.active = covered & (weights > 0)
+        self.scale = scale
+        self.alpha, self.beta = alpha, beta
+
+    def __call__(self, fields, deformed: np.ndarray) -> LevelScore:
+        """Score the fit `deformed` (the template's vertices) made by the level `fields`."""
+        normals = vertex_normals(deformed, self.template_faces)
+        ed = distance_error(deformed, normals, self.scan_tree, self.scan_normals, threshold=self.threshold,
+                            weights=self.vertex_weights, scan_rim=self.scan_rim)
+        em = (marker_error(evaluate_fields(fields, self.marker_template), self.marker_scan)
+              if len(self.marker_template) else np.nan)
+        coverage = float(np.isfinite(ed.distances[self.active]).mean()) if self.active.any() else 0.0
+        ed_value, em_value = ed.value / self.scale**2, em / self.scale**2
+        return LevelScore(ed_value, em_value, combined_error(ed_value, em_value, self.alpha, self.beta), coverage,
+                          normals)
