@@ -11,14 +11,16 @@ import subprocess
 import sys
 import time
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
 
 import tpscore
 from tpscore import batch
-from tpscore.batch import AdaptJob, Progress, TransferJob
+from tpscore.batch import AdaptJob, Job, Progress, TransferJob
 from tpscore.batch.work import WorkSettings, read_record
 
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -193,7 +195,13 @@ def gt_faces(shared):
 @pytest.fixture(scope="module")
 def client():
     distributed = pytest.importorskip("distributed")
-    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
+    import dask
+
+    # a task whose worker dies twice is given up (Dask's default waits for four deaths,
+    # each a worker restart of seconds); one death is still survived
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+        cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                           dashboard_address=None)
     client = distributed.Client(cluster)
     yield client
     client.close()
@@ -350,6 +358,43 @@ def test_a_worker_killed_mid_job_loses_nothing(scans, client, gt_faces, shared, 
     while len(client.nthreads()) < 2 and time.monotonic() < deadline:
         time.sleep(0.2)
     assert len(client.nthreads()) == 2 and pid not in client.run(os.getpid).values()
+
+
+@dataclass(frozen=True)
+class _QuickJob(Job):
+    """Computes nothing; its record is its result."""
+
+    name: str
+    kind: ClassVar[str] = "quick"
+    save: ClassVar[bool] = False
+
+    def columns(self):
+        return {}
+
+    def run(self, context):
+        return {}
+
+
+@dataclass(frozen=True)
+class _CrashJob(_QuickJob):
+    """Takes down the worker process that runs it, as a segfault or the kernel's
+    out-of-memory killer would."""
+
+    def run(self, context):
+        os._exit(3)
+
+
+def test_a_job_that_kills_every_worker_it_runs_on_fails_alone(client, tmp_path):
+    jobs = [_QuickJob("before"), _CrashJob("crash"), _QuickJob("after")]
+    # one job in flight at a time: no innocent job is queued on a worker as it dies
+    report = batch.run(jobs, tmp_path, client=client, max_in_flight=1, progress=False)
+    status = {row["name"]: row for row in report.rows}
+    assert status["before"]["status"] == status["after"]["status"] == "done"
+    assert status["crash"]["status"] == "failed" and "KilledWorker" in status["crash"]["error"]
+    assert read_record(tmp_path, "crash") is None  # it never finished: a rerun tries it again
+    deadline = time.monotonic() + 60
+    while len(client.nthreads()) < 2 and time.monotonic() < deadline:
+        time.sleep(0.2)  # leave the cluster whole for the tests after this one
 
 
 def test_ctrl_c_leaves_complete_outputs_and_the_rerun_resumes(scans, client, gt_faces, tmp_path):
