@@ -23,7 +23,6 @@ from tpscore import batch
 from tpscore.batch import AdaptJob, Job, Progress, TransferJob
 from tpscore.batch.work import WorkSettings, read_record
 
-REPOSITORY = Path(__file__).resolve().parents[1]
 # a small grid keeps each transfer well under a second; the pipeline is the default one
 GRID = (64, 64)
 
@@ -401,15 +400,17 @@ def test_ctrl_c_leaves_complete_outputs_and_the_rerun_resumes(scans, client, gt_
     out = tmp_path / "out"
     command = [sys.executable, "-m", "tpscore.cli", "batch", str(scans), "--out", str(out), "--pairs", "all",
                "--grid", f"{GRID[0]}x{GRID[1]}", "--workers", "2", "--gt-faces", str(gt_faces)]
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPOSITORY / "python"),
-                                                                     os.environ.get("PYTHONPATH")])))
     # a session of its own: Ctrl-C at a terminal signals the whole foreground group,
     # the workers included, and so does killpg here
-    process = subprocess.Popen(command, env=env, start_new_session=True, stdout=subprocess.PIPE,
+    # the interpreter's own environment: the installed tpscore (or the caller's PYTHONPATH)
+    process = subprocess.Popen(command, start_new_session=True, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
     while not list((out / "records").glob("*.json")) and time.monotonic() < deadline and process.poll() is None:
         time.sleep(0.1)
+    if process.poll() is not None:
+        _, stderr = process.communicate()
+        pytest.fail(f"the batch ended before it could be interrupted (exit {process.returncode}): {stderr}")
     os.killpg(process.pid, signal.SIGINT)
     stdout, stderr = process.communicate(timeout=120)
     assert process.returncode == 130, stderr
