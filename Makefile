@@ -27,10 +27,12 @@ demo: install
 	$(VENV)/bin/tpscore demo --out demo-output
 
 # Speed benchmarks (pytest-benchmark; ratios in bench-output/ratios.md), then the
-# fidelity benchmark (bench-output/fidelity.md); both skip what needs ../shared if absent.
+# fidelity benchmark (bench-output/fidelity.md) and the batch engine's throughput
+# (bench-output/batch_throughput.md); all skip what needs ../shared if absent.
 bench: install
 	$(PY) -m pytest benchmarks -q -p no:cacheprovider -o python_files="bench_*.py" --benchmark-columns=min,median,mean,rounds --benchmark-sort=name
 	$(PY) benchmarks/fidelity.py $(FIDELITY_ARGS)
+	$(PY) benchmarks/batch_throughput.py
 
 # The physical skin's stability sweep and fidelity benchmark (about an hour and a half
 # on a shared two-core machine; the fidelity part skips without ../shared):

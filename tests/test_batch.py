@@ -140,6 +140,22 @@ def test_run_refuses_bad_arguments_before_starting_dask(tmp_path):
         batch.run([job], tmp_path / "file")
 
 
+@pytest.mark.parametrize("arguments, message", [
+    ([], "give a folder DIR or --manifest CSV"),
+    (["DIR", "--manifest", "m.csv"], "give a folder DIR or --manifest CSV"),
+    (["DIR", "--kind", "adapt"], "--kind adapt needs --template and --template-landmarks"),
+    (["DIR", "--sources", "0-x"], "--sources must look like 0-9,12"),
+    (["DIR", "--grid", "150"], "--grid must look like 150x150"),
+])
+def test_batch_command_errors_are_one_line(tmp_path, capsys, arguments, message):
+    from tpscore.cli import main
+
+    arguments = [str(tmp_path) if a == "DIR" else a for a in arguments]
+    assert main(["batch", *arguments, "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tpscore: error:") and message in err and err.count("\n") == 1
+
+
 def test_results_table_round_trips(tmp_path):
     rows = [dict(name="a", kind="transfer", status="done", error="", seconds=0.1 + 0.2, residual_ratio=1 / 3,
                  stage_seconds={"model": 0.25}),
