@@ -118,11 +118,10 @@ def _file_key(kind: str, path: str, *extra):
 
 
 def _landmarks_beside(path: str) -> str:
-    stem = os.path.splitext(path)[0]
-    for suffix in (".lm3", ".csv", ".json"):
-        if os.path.isfile(stem + suffix):
-            return stem + suffix
-    raise ValueError(f"{path!r}: no landmark file beside it (looked for .lm3, .csv, .json)")
+    found = io.landmark_file_beside(path)
+    if found is None:
+        raise ValueError(f"{path!r}: no landmark file beside it (looked for .lm3, .csv, .json)")
+    return str(found)
 
 
 class JobContext:

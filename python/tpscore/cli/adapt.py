@@ -9,12 +9,11 @@ keeps the template's vertex order, count and faces, in the scan's frame.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 from .. import render
 from ..adaptation import AdaptOptions, adapt
 from ..face import io
-from ..face.grid import FaceGrid
+from .arguments import read_scan_surface, scan_landmarks_path
 
 __all__ = ["add_adapt_parser", "adapt_command"]
 
@@ -46,22 +45,8 @@ def adapt_command(args) -> int:
     if len(template_faces) == 0:
         raise ValueError(f"{args.template!r}: the template has no faces; adaptation needs a mesh")
     template_landmarks = io.read_landmarks(args.template_landmarks)
-    scan_path = Path(args.scan)
-    if scan_path.suffix.lower() == ".bnt":
-        grid = FaceGrid.from_points(io.read_bnt(scan_path).points)
-        mesh = grid.mesh()
-        scan = (mesh.vertices, mesh.faces)
-    else:
-        scan = io.read_mesh(scan_path)
-        if len(scan[1]) == 0:
-            raise ValueError(f"{args.scan!r}: the scan has no faces; give a mesh or a .bnt grid")
-    landmarks_path = args.scan_landmarks
-    if landmarks_path is None:
-        found = [scan_path.with_suffix(s) for s in (".lm3", ".csv", ".json") if scan_path.with_suffix(s).is_file()]
-        if not found:
-            raise ValueError(f"no landmark file beside {args.scan!r}; pass --scan-landmarks")
-        landmarks_path = found[0]
-    scan_landmarks = io.read_landmarks(landmarks_path)
+    scan = read_scan_surface(args.scan)
+    scan_landmarks = io.read_landmarks(scan_landmarks_path(args.scan, args.scan_landmarks))
     say(f"read template ({len(template_vertices)} vertices) and scan ({len(scan[0])} vertices)")
 
     def progress(level) -> None:

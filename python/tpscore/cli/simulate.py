@@ -12,13 +12,12 @@ and their times; or a mesh), pictures and an animated GIF.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import numpy as np
 
 from .. import render
 from ..face import io
-from ..face.grid import FaceGrid
+from .arguments import read_scan_surface, scan_landmarks_path
 from ..physics import SimulationOptions, SkinModel, carry_head, deform_from_vertices, fit_head, load_template
 
 __all__ = ["add_simulate_parser", "simulate_command", "parse_contractions"]
@@ -74,13 +73,6 @@ def _check_contractions(head, contractions: dict) -> None:
             raise ValueError(f"contractions must lie in [0, 1], got {value:g} for {name!r}")
 
 
-def _landmarks_beside(path: Path):
-    found = [path.with_suffix(s) for s in (".lm3", ".csv", ".json") if path.with_suffix(s).is_file()]
-    if not found:
-        raise ValueError(f"no landmark file beside {str(path)!r}; pass --scan-landmarks")
-    return found[0]
-
-
 def simulate_command(args) -> int:
     start = time.perf_counter()
 
@@ -102,16 +94,8 @@ def simulate_command(args) -> int:
     contractions = parse_contractions(template, args.au, args.contract)
     _check_contractions(template, contractions)
     if args.scan is not None:
-        scan_path = Path(args.scan)
-        if scan_path.suffix.lower() == ".bnt":
-            grid = FaceGrid.from_points(io.read_bnt(scan_path).points)
-            mesh = grid.mesh()
-            scan = (mesh.vertices, mesh.faces)
-        else:
-            scan = io.read_mesh(scan_path)
-            if len(scan[1]) == 0:
-                raise ValueError(f"{args.scan!r}: the scan has no faces; give a mesh or a .bnt grid")
-        landmarks = io.read_landmarks(args.scan_landmarks or _landmarks_beside(scan_path))
+        scan = read_scan_surface(args.scan)
+        landmarks = io.read_landmarks(scan_landmarks_path(args.scan, args.scan_landmarks))
         head, adaptation = fit_head(scan, landmarks, template)
         say(f"fitted the template head to {args.scan} (level {adaptation.best_level}) and carried its skull, "
             f"muscles and jaw along")

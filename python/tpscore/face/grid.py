@@ -35,7 +35,7 @@ from .._validation import MAX_COORDINATE, as_array, as_path, as_positive
 from ..geometry import FrameTransform
 from .image import as_colour_image as _as_colour_image
 from .image import check_image_fits, sample_image
-from .io import BntScan, read_bnt, read_image, read_landmarks, read_mesh
+from .io import BntScan, landmark_file_beside, read_bnt, read_image, read_landmarks, read_mesh
 from .landmarks import LANDMARK_NAMES, N_LANDMARKS, as_landmarks, empty_landmarks
 from .pose import scan_pose
 
@@ -495,10 +495,9 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
             raise ValueError(f"image_path: only a .bnt scan carries the u,v an image needs, not {str(path)!r}")
         source, _ = read_mesh(path)
     if landmarks_path is None:
-        candidates = [path.with_suffix(s) for s in (".lm3", ".csv", ".json")]
-        found = [c for c in candidates if c.is_file()]
-        if found:
-            landmarks = read_landmarks(found[0])
+        found = landmark_file_beside(path)
+        if found is not None:
+            landmarks = read_landmarks(found)
         else:
             warnings.warn(
                 f"no landmark file beside {str(path)!r} (looked for .lm3, .csv, .json); "

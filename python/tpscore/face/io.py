@@ -44,6 +44,7 @@ __all__ = [
     "read_lm3",
     "write_lm3",
     "read_landmarks",
+    "landmark_file_beside",
     "write_landmarks",
     "read_mesh",
     "write_mesh",
@@ -579,6 +580,17 @@ def _read_landmarks_json(path) -> np.ndarray:
     else:
         raise ValueError(f"{where}: JSON landmarks must be an object {{name: [x, y, z]}} or a list of 22")
     return landmarks
+
+
+#: The landmark files a scan may have beside it, in the order they are looked for.
+LANDMARK_SUFFIXES = (".lm3", ".csv", ".json")
+
+
+def landmark_file_beside(path) -> Path | None:
+    """The landmark file beside a scan (same name, suffix .lm3, .csv or .json, in that
+    order), or None when there is none."""
+    path = Path(path)
+    return next((c for c in (path.with_suffix(s) for s in LANDMARK_SUFFIXES) if c.is_file()), None)
 
 
 def read_landmarks(path) -> np.ndarray:
