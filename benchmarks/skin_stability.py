@@ -50,41 +50,38 @@ def run(model, contractions, jaw_deg, integrator, dt):
     return stable, speed, seconds / max(steps, 1)
 
 
+def sweep_cases(model, integrator, dt):
+    """Each case of :data:`CASES` at one step: its table cell, and the wall time per
+    step (s) of every run."""
+    cells, per_step = [], []
+    for _, units, jaw in CASES:
+        contractions = model.head.contractions_for(units) if units else None
+        stable, speed, seconds = run(model, contractions, jaw, integrator, dt)
+        cells.append(("stable" if stable else "UNSTABLE") + f" (max speed {speed:.3g} mm/s)")
+        per_step.append(seconds)
+    return cells, per_step
+
+
 def main() -> int:
     lines = ["| integrator | skin | step | smile | jaw 15 deg | wall time per step |", "|---|---|---:|---|---|---:|"]
     model = SkinModel(build_template(2.5))
     limit = model.stable_step
     for factor in (0.5, 1.0, 1.25, 1.5, 1.75, 2.0, 3.0):
         dt = factor * limit
-        cells, per_step = [], []
-        for name, units, jaw in CASES:
-            contractions = model.head.contractions_for(units) if units else None
-            stable, speed, seconds = run(model, contractions, jaw, "symplectic", dt)
-            cells.append(("stable" if stable else "UNSTABLE") + f" (max speed {speed:.3g} mm/s)")
-            per_step.append(seconds)
+        cells, per_step = sweep_cases(model, "symplectic", dt)
         lines.append(f"| semi-implicit | template, 2,571 vertices | {dt * 1e6:.1f} us ({factor:g} x stable_step) | "
                      f"{cells[0]} | {cells[1]} | {1e3 * np.mean(per_step):.2f} ms |")
         print(lines[-1], flush=True)
     # the implicit step on the template itself, at its default step and above
     for dt in (2e-3, 5e-3):
-        cells, per_step = [], []
-        for name, units, jaw in CASES:
-            contractions = model.head.contractions_for(units) if units else None
-            stable, speed, seconds = run(model, contractions, jaw, "implicit", dt)
-            cells.append(("stable" if stable else "UNSTABLE") + f" (max speed {speed:.3g} mm/s)")
-            per_step.append(seconds)
+        cells, per_step = sweep_cases(model, "implicit", dt)
         lines.append(f"| implicit | template, 2,571 vertices | {dt * 1e3:g} ms ({dt / limit:.0f} x stable_step) | "
                      f"{cells[0]} | {cells[1]} | {1e3 * np.mean(per_step):.1f} ms |")
         print(lines[-1], flush=True)
     coarse = SkinModel(build_template(5.0))
     lines.append(f"| semi-implicit | template, 642 vertices | stable_step = {coarse.stable_step * 1e6:.1f} us | | | |")
     for dt in (1e-3, 2e-3, 5e-3, 1e-2, 2e-2):
-        cells, per_step = [], []
-        for name, units, jaw in CASES:
-            contractions = coarse.head.contractions_for(units) if units else None
-            stable, speed, seconds = run(coarse, contractions, jaw, "implicit", dt)
-            cells.append(("stable" if stable else "UNSTABLE") + f" (max speed {speed:.3g} mm/s)")
-            per_step.append(seconds)
+        cells, per_step = sweep_cases(coarse, "implicit", dt)
         lines.append(f"| implicit | template, 642 vertices | {dt * 1e3:g} ms ({dt / coarse.stable_step:.0f} x "
                      f"stable_step) | {cells[0]} | {cells[1]} | {1e3 * np.mean(per_step):.1f} ms |")
         print(lines[-1], flush=True)
