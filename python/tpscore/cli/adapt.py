@@ -8,12 +8,12 @@ keeps the template's vertex order, count and faces, in the scan's frame.
 """
 from __future__ import annotations
 
-import time
 
 from .. import render
 from ..adaptation import AdaptOptions, adapt
 from ..face import io
 from .arguments import read_scan_surface, scan_landmarks_path
+from .progress import StepLog
 
 __all__ = ["add_adapt_parser", "adapt_command"]
 
@@ -35,11 +35,7 @@ def add_adapt_parser(sub) -> None:
 
 
 def adapt_command(args) -> int:
-    start = time.perf_counter()
-
-    def say(message: str) -> None:
-        if not args.quiet:
-            print(f"[{time.perf_counter() - start:7.2f} s] {message}", flush=True)
+    say = StepLog(args.quiet)
 
     template_vertices, template_faces = io.read_mesh(args.template)
     if len(template_faces) == 0:

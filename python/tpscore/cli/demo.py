@@ -32,6 +32,7 @@ from ..face import io
 from ..face.grid import load_scan, resample_scan
 from ..physics import SimulationOptions, SkinModel, fit_head
 from .outputs import transfer_picture, write_result_mesh, write_result_page, write_sweep_gif
+from .progress import StepLog
 
 __all__ = ["run_demo", "run_skin_demo", "DEMO_EXPRESSIONS", "SKIN_DEMO_EXPRESSIONS", "SOURCE_PERSON", "TARGET_PERSON"]
 
@@ -62,11 +63,7 @@ def run_demo(out_dir="demo-output", *, quiet: bool = False) -> dict:
     out = Path(out_dir)
     scans_dir = out / "scans"
     scans_dir.mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
-
-    def say(message):
-        if not quiet:
-            print(f"[{time.perf_counter() - start:6.2f} s] {message}", flush=True)
+    say = StepLog(quiet)
 
     source = make_demo_scan(SOURCE_PERSON, None, seed=11, **_SCAN_OPTIONS)
     target = make_demo_scan(TARGET_PERSON, None, seed=13, **_SCAN_OPTIONS)
@@ -131,11 +128,7 @@ def run_skin_demo(out_dir="demo-output", *, quiet: bool = False) -> dict:
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
-
-    def say(message):
-        if not quiet:
-            print(f"[{time.perf_counter() - start:6.2f} s] {message}", flush=True)
+    say = StepLog(quiet)
 
     scan = datasets.make_face(datasets.random_identity(_DEMO_IDENTITY_SEED), noise_mm=0.1, pose_deg=4.0,
                               seed=_DEMO_SCAN_SEED)

@@ -21,7 +21,6 @@ reconstruction error, storage), and one picture per expression
 """
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +30,7 @@ from .._files import atomic_write
 from ..elastic import ElasticFace, ElasticOptions
 from ..face import io
 from ..mesh import height_field_remesh
+from .progress import StepLog
 
 __all__ = ["add_elastic_parser", "elastic_command"]
 
@@ -103,11 +103,7 @@ def _subject(model: dict, subject: int) -> np.ndarray:
 
 def elastic_command(args) -> int:
     """Run ``tpscore elastic`` from parsed arguments; returns the exit status."""
-    start = time.perf_counter()
-
-    def step(message: str) -> None:
-        if not args.quiet:
-            print(f"[{time.perf_counter() - start:7.2f} s] {message}", flush=True)
+    step = StepLog(args.quiet)
 
     if args.face_model:
         model = _load_npz(args.face_model, ("neutral", "faces", "identity_modes", "expression_names",

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 import warnings
 from pathlib import Path
 
@@ -35,21 +34,10 @@ from .batch import add_batch_parser, batch_command
 from .demo import run_demo
 from .elastic import add_elastic_parser, elastic_command
 from .outputs import transfer_picture, write_result_mesh, write_result_page, write_sweep_gif
+from .progress import StepLog
 from .simulate import add_simulate_parser, simulate_command
 
 __all__ = ["main"]
-
-
-class _Progress:
-    """Prints one line per finished step with its time, so long work shows progress."""
-
-    def __init__(self, quiet: bool = False):
-        self.quiet = quiet
-        self.start = time.perf_counter()
-
-    def step(self, message: str) -> None:
-        if not self.quiet:
-            print(f"[{time.perf_counter() - self.start:7.2f} s] {message}", flush=True)
 
 
 def _add_transfer(sub) -> None:
@@ -85,22 +73,22 @@ def _add_transfer(sub) -> None:
 
 def run_transfer(args) -> int:
 
-    progress = _Progress(args.quiet)
+    progress = StepLog(args.quiet)
     shape = grid_shape(args.grid)
     grids = []
     for path, lm in ((args.source_neutral, args.source_neutral_landmarks),
                      (args.source_expr, args.source_expr_landmarks), (args.target, args.target_landmarks)):
         grids.append(load_scan(path, lm, shape=shape))
-        progress.step(f"read and resampled {path}")
+        progress(f"read and resampled {path}")
     options = TransferOptions.published() if args.method == "published" else TransferOptions()
-    result = transfer(*grids, args.au, args.magnitude, options=options, progress=progress.step)
-    progress.step(f"transferred {'+'.join(result.animation.labels)} at magnitude {args.magnitude:g}")
+    result = transfer(*grids, args.au, args.magnitude, options=options, progress=progress)
+    progress(f"transferred {'+'.join(result.animation.labels)} at magnitude {args.magnitude:g}")
     if args.out:
         io.write_npz(args.out, **result.to_npz_dict())
-        progress.step(f"wrote {args.out}")
+        progress(f"wrote {args.out}")
     if args.mesh:
         written = write_result_mesh(result, args.mesh)
-        progress.step(f"wrote {', '.join(str(p) for p in written)}")
+        progress(f"wrote {', '.join(str(p) for p in written)}")
     errors = None
     if args.truth:
         truth = load_scan(args.truth, args.truth_landmarks, shape=shape)
@@ -113,32 +101,32 @@ def run_transfer(args) -> int:
         # score where the expression shows: the neutral target is off the true surface
         moving = neutral_errors > 0.5
         rms = lambda d: float(np.sqrt(np.mean(d ** 2)))  # noqa: E731
-        progress.step(f"distance to the true expressive scan where the neutral target is over 0.5 mm off "
+        progress(f"distance to the true expressive scan where the neutral target is over 0.5 mm off "
                       f"({int(moving.sum())} vertices): rms {rms(errors[moving]):.2f} mm "
                       f"(the neutral target: {rms(neutral_errors[moving]):.2f} mm)")
     if args.png:
         picture = transfer_picture(grids, result, errors=errors,
                                    titles={"error": "distance to the true scan (mm)"})
         io.write_png(args.png, picture)
-        progress.step(f"wrote {args.png}")
+        progress(f"wrote {args.png}")
     if args.gif:
         write_sweep_gif(result, args.gif, frames=16)
-        progress.step(f"wrote {args.gif}")
+        progress(f"wrote {args.gif}")
     if args.html:
         write_result_page(result, args.html)
-        progress.step(f"wrote {args.html}")
+        progress(f"wrote {args.html}")
     return 0
 
 
 def run_build_afm(args) -> int:
 
-    progress = _Progress(args.quiet)
+    progress = StepLog(args.quiet)
     faces = afm_faces()
-    progress.step(f"generated {len(faces)} procedural faces")
+    progress(f"generated {len(faces)} procedural faces")
     afm = build_average_face(faces, shape=grid_shape(args.grid))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     afm.save(args.out)
-    progress.step(f"wrote {args.out} ({afm.grid.mask.sum()} valid vertices)")
+    progress(f"wrote {args.out} ({afm.grid.mask.sum()} valid vertices)")
     return 0
 
 

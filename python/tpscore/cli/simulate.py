@@ -11,14 +11,14 @@ and their times; or a mesh), pictures and an animated GIF.
 """
 from __future__ import annotations
 
-import time
 
 import numpy as np
 
 from .. import render
 from ..face import io
-from .arguments import read_scan_surface, scan_landmarks_path
 from ..physics import SimulationOptions, SkinModel, carry_head, deform_from_vertices, fit_head, load_template
+from .arguments import read_scan_surface, scan_landmarks_path
+from .progress import StepLog
 
 __all__ = ["add_simulate_parser", "simulate_command", "parse_contractions"]
 
@@ -74,11 +74,7 @@ def _check_contractions(head, contractions: dict) -> None:
 
 
 def simulate_command(args) -> int:
-    start = time.perf_counter()
-
-    def say(message: str) -> None:
-        if not args.quiet:
-            print(f"[{time.perf_counter() - start:7.2f} s] {message}", flush=True)
+    say = StepLog(args.quiet)
 
     template = load_template(args.template)
     if args.list_muscles:
