@@ -7,7 +7,7 @@ import tpscore
 from tpscore import datasets
 from tpscore.expression import TransferOptions
 from tpscore.face.landmarks import landmark_index
-from tpscore.expression import DenseMotion, MirroredMotion
+from tpscore.expression import DenseMotion, MirroredMotion, modelling, pipeline
 from tpscore.face.grid import resample_scan
 from tpscore.face.regions import region_boundary
 
@@ -116,6 +116,48 @@ def test_a_bilateral_expression_averages_its_field_with_the_mirror_image(smile):
     assert ratio(mirrored) < ratio(plain) - 0.05
     # a one-sided AU keeps the field as registered
     assert isinstance(tpscore.transfer(gs, ge, gs, "12L").model.dense, DenseMotion)
+
+
+def test_what_the_second_thread_prepares_changes_nothing(smile, monkeypatch):
+    (_, _, _), (gs, ge, gt) = smile
+    ahead = tpscore.transfer(gs, ge, gt, "12")
+    # the same transfer with nothing made ahead: each face's surface, registration grid
+    # and mirror plane are then made where they are used
+    monkeypatch.setattr(pipeline, "_prepare", lambda *args: None)
+    in_turn = tpscore.transfer(gs, ge, gt, "12")
+    assert np.array_equal(ahead.vertices, in_turn.vertices, equal_nan=True)
+
+
+def test_a_mirror_plane_that_cannot_be_fitted_is_warned_about_where_it_is_used(smile, monkeypatch):
+    (_, _, _), (gs, ge, gt) = smile
+
+    fit = modelling.fit_mirror_symmetry
+    calls = []
+
+    def plane_for_the_first_face_only(grid, **options):
+        # the second thread fits the source's plane first, then the target's
+        calls.append(grid)
+        if len(calls) > 1:
+            raise ValueError("no plane here")
+        return fit(grid, **options)
+
+    monkeypatch.setattr(modelling, "fit_mirror_symmetry", plane_for_the_first_face_only)
+    with pytest.warns(UserWarning, match="not averaged with its mirror image: no plane here") as caught:
+        result = tpscore.transfer(gs, ge, gt, "12")
+    assert len(calls) == 2 and sum("no plane here" in str(w.message) for w in caught) == 1
+    assert isinstance(result.model.dense, MirroredMotion)    # the source's field is mirrored
+    assert np.isfinite(result.vertices[result.mask]).all()
+
+    def no_plane(grid, **options):
+        raise ValueError("no plane here")
+
+    monkeypatch.setattr(modelling, "fit_mirror_symmetry", no_plane)
+    with pytest.warns(UserWarning, match="not averaged with its mirror image: no plane here") as caught:
+        result = tpscore.transfer(gs, ge, gt, "12")
+    # without the source's plane the field is not mirrored, so the target's is not needed
+    assert sum("no plane here" in str(w.message) for w in caught) == 1
+    assert isinstance(result.model.dense, DenseMotion)
+    assert np.isfinite(result.vertices[result.mask]).all()
 
 
 def test_frames_are_linear_in_magnitude(smile):

@@ -38,6 +38,27 @@ def test_bspline_lattice_is_a_partition_of_unity_and_reproduces_affine_fields():
     assert bump @ bending @ bump > 1e-4
 
 
+@pytest.mark.parametrize("spacing,columns", [(4.0, 3), (7.0, 1), (30.0, 2)])
+def test_lattice_evaluation_matches_the_numpy_reference_and_the_basis(spacing, columns):
+    lattice = BSplineLattice([-40.0, -60.0], [45.0, 50.0], spacing)
+    rng = np.random.default_rng(3)
+    # points beyond the rectangle too: their stencils are clamped to the lattice's edge
+    xy = rng.uniform([-70, -90], [75, 80], size=(5000, 2))
+    values = rng.normal(size=(lattice.n_nodes, columns)) * 10.0
+    compiled = lattice.evaluate(xy, values)
+    assert compiled.shape == (5000, columns)
+    np.testing.assert_allclose(compiled, reference.evaluate(lattice, xy, values), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(compiled, lattice.basis(xy) @ values, rtol=0, atol=1e-12)
+    # a point's row does not depend on the others or on the thread count
+    _core.set_num_threads(1)
+    try:
+        assert np.array_equal(lattice.evaluate(xy[::-1], values), compiled[::-1])
+    finally:
+        _core.set_num_threads(0)
+    nan_rows = lattice.evaluate(np.array([[np.nan, 0.0], [0.0, np.inf]]), values)
+    assert np.isnan(nan_rows).all()
+
+
 def _random_symmetric(rng, m):
     q = rng.normal(size=(m, 3, 3))
     return q + q.transpose(0, 2, 1)

@@ -15,6 +15,7 @@ from tpscore import (
     FaceGrid,
     LandmarkSnapWarning,
     load_scan,
+    load_scans,
     read_bnt,
     read_lm3,
     resample_scan,
@@ -376,6 +377,30 @@ def test_load_scan_bnt_and_mesh(tmp_path, scan):
     with pytest.warns(LandmarkSnapWarning, match="no landmark file"):
         alone = load_scan(tmp_path / "alone.obj")
     assert (alone.landmark_vertices == -1).all()
+
+
+def test_load_scans_reads_several_at_once_in_order(tmp_path):
+    landmarks = np.full((22, 3), np.nan)
+    landmarks[13] = [1.0, 2.0, face_height(1.0, 2.0)]
+    paths = []
+    for k in range(3):
+        # three scans that differ, so that a mix-up of their order shows
+        write_bnt(tmp_path / f"face{k}.bnt", synthetic_scan(lambda x, y: face_height(x, y) + k))
+        write_lm3(tmp_path / f"face{k}.lm3", landmarks)
+        paths.append(tmp_path / f"face{k}.bnt")
+    together = load_scans(paths, shape=(60, 70))
+    for path, grid in zip(paths, together):
+        alone = load_scan(path, shape=(60, 70))
+        assert np.array_equal(grid.points, alone.points, equal_nan=True)
+        assert np.array_equal(grid.landmark_vertices, alone.landmark_vertices)
+    assert [np.nanmean(grid.points[..., 2]) for grid in together] == sorted(
+        np.nanmean(grid.points[..., 2]) for grid in together)
+    # the first path in order that fails is the one reported, naming its file
+    (tmp_path / "broken.bnt").write_bytes(b"\x00" * 10)
+    with pytest.raises(ValueError, match="broken.bnt"):
+        load_scans([paths[0], tmp_path / "broken.bnt", tmp_path / "missing.bnt"])
+    with pytest.raises(ValueError, match="landmarks_paths has 1 entries for 3 paths"):
+        load_scans(paths, [None])
 
 
 def test_load_scan_on_make_scans_output(shared, tmp_path):

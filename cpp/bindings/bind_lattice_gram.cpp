@@ -1,4 +1,4 @@
-// nanobind glue for the lattice Gram kernel (tpscore/lattice_gram.hpp). Inputs arrive
+// nanobind glue for the lattice kernels (tpscore/lattice_gram.hpp). Inputs arrive
 // C-contiguous from tpscore.motion (int64 stencil corners, float64 weights and
 // blocks); Python allocates the output and the kernel fills it in place.
 #include <nanobind/nanobind.h>
@@ -16,6 +16,7 @@ namespace {
 template <class T, class Shape>
 using Input = nb::ndarray<const T, Shape, nb::c_contig, nb::device::cpu>;
 using GramOut = nb::ndarray<double, nb::ndim<3>, nb::c_contig, nb::device::cpu>;
+using FieldOut = nb::ndarray<double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
 }  // namespace
 
 void bind_lattice_gram(nb::module_& m) {
@@ -40,4 +41,20 @@ void bind_lattice_gram(nb::module_& m) {
         "first_node"_a, "weights"_a, "blocks"_a, "rows"_a, "columns"_a, "out"_a.noconvert(),
         "Write the block Gram matrix sum_i (b_i b_i^T) (x) Q_i of lattice samples into out "
         "(n_nodes, 25, 6).");
+    m.def(
+        "lattice_evaluate_into",
+        [](Input<double, nb::shape<-1, 2>> xy, double origin_x, double origin_y, double spacing,
+           std::int64_t rows, std::int64_t columns, Input<double, nb::ndim<2>> values, FieldOut out) {
+            const std::size_t m = xy.shape(0);
+            if (values.shape(0) != static_cast<std::size_t>(rows * columns))
+                throw std::invalid_argument("values must have one row per lattice node");
+            if (out.shape(0) != m || out.shape(1) != values.shape(1))
+                throw std::invalid_argument("out must have shape (len(xy), values.shape[1])");
+            nb::gil_scoped_release release;
+            tpscore::lattice_evaluate(static_cast<std::int64_t>(m), xy.data(), origin_x, origin_y, spacing, rows,
+                                      columns, values.data(), static_cast<std::int64_t>(values.shape(1)),
+                                      out.data());
+        },
+        "xy"_a, "origin_x"_a, "origin_y"_a, "spacing"_a, "rows"_a, "columns"_a, "values"_a,
+        "out"_a.noconvert(), "Write the lattice field at points xy (m, 2) into out (m, k).");
 }

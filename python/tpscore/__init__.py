@@ -73,7 +73,7 @@ from .mesh import (
     voronoi_areas,
 )
 from .face.normalise import FrameTransform, NormalisedFace, normalise_face, similarity_transform, thesis_affine_transform
-from .face.grid import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, resample_scan
+from .face.grid import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, load_scans, resample_scan
 from .face.pose import ImplausibleLandmarksWarning, MirroredLandmarksError, ScanPose, scan_pose
 from .rbf import RBF, RBF_KERNELS, TPS
 from .sparse import PatternCholesky, SparseCholesky
@@ -114,6 +114,7 @@ __all__ = [
     "MirroredLandmarksError",
     "ImplausibleLandmarksWarning",
     "load_scan",
+    "load_scans",
     # expression transfer
     "ActionUnit",
     "ActionUnitLibrary",

@@ -89,11 +89,14 @@ class BSplineLattice:
 
     def evaluate(self, xy, node_values) -> np.ndarray:
         """The field at points (m, 2) from its (n_nodes, k) node values: ``basis(xy) @
-        node_values`` without building the matrix."""
-        cols, values = self._stencil(xy)
-        node_values = np.asarray(node_values, dtype=np.float64).reshape(self.n_nodes, -1)
-        return np.stack([(values * node_values[:, k][cols]).sum(axis=1)
-                         for k in range(node_values.shape[1])], axis=1)
+        node_values`` without building the matrix (compiled, threaded; NaN rows for
+        non-finite points). Its reference is :func:`tpscore.reference.lattice.evaluate`."""
+        xy = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+        node_values = np.ascontiguousarray(np.asarray(node_values, dtype=np.float64).reshape(self.n_nodes, -1))
+        out = np.empty((len(xy), node_values.shape[1]))
+        _core.lattice_evaluate_into(xy, float(self.origin[0]), float(self.origin[1]), self.spacing,
+                                    self.shape[0], self.shape[1], node_values, out)
+        return out
 
     def bending(self) -> sp.csr_matrix:
         """(n_nodes, n_nodes) thin-plate bending energy of the node values (second

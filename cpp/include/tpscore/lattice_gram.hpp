@@ -1,4 +1,5 @@
-// Normal equations of least-squares fits on a uniform cubic B-spline lattice.
+// A uniform cubic B-spline lattice: evaluating a field on it, and the normal equations
+// of least-squares fits on it.
 #pragma once
 
 #include <cstdint>
@@ -34,5 +35,20 @@ inline constexpr int kSymmetricBlock = 6;
 void lattice_block_gram(std::int64_t n_samples, const std::int64_t* first_node,
                         const double* weights, const double* blocks, std::int64_t rows,
                         std::int64_t columns, double* out);
+
+/// The field of a uniform cubic B-spline lattice at points in the x-y plane:
+///
+///     out[i, c] = sum over the 4 x 4 stencil of point i of  w_row * w_column * values[node, c]
+///
+/// The lattice has `rows` x `columns` nodes (row-major node index), node (r, q) at
+/// x = origin_x + q * spacing, y = origin_y + r * spacing. A point's stencil starts at
+/// the cell below and left of it, clamped so that the stencil stays on the lattice
+/// (a point beyond the edge takes the edge cell's polynomial at its clamped position),
+/// exactly as tpscore.lattice.BSplineLattice places it. xy is (m, 2), values
+/// (rows * columns, k) and out (m, k), all row-major. Rows are independent: the result
+/// does not depend on the thread count. Non-finite points give NaN rows.
+void lattice_evaluate(std::int64_t m, const double* xy, double origin_x, double origin_y, double spacing,
+                      std::int64_t rows, std::int64_t columns, const double* values, std::int64_t k,
+                      double* out);
 
 }  // namespace tpscore

@@ -27,7 +27,7 @@ from ..batch.scores import surface_distances
 from ..expression import TransferOptions, transfer
 from ..face import io
 from ..face.average_face import afm_faces, build_average_face
-from ..face.grid import load_scan
+from ..face.grid import load_scan, load_scans
 from .adapt import add_adapt_parser, adapt_command
 from .arguments import grid_shape
 from .batch import add_batch_parser, batch_command
@@ -75,11 +75,10 @@ def run_transfer(args) -> int:
 
     progress = StepLog(args.quiet)
     shape = grid_shape(args.grid)
-    grids = []
-    for path, lm in ((args.source_neutral, args.source_neutral_landmarks),
-                     (args.source_expr, args.source_expr_landmarks), (args.target, args.target_landmarks)):
-        grids.append(load_scan(path, lm, shape=shape))
-        progress(f"read and resampled {path}")
+    paths = [args.source_neutral, args.source_expr, args.target]
+    grids = load_scans(paths, [args.source_neutral_landmarks, args.source_expr_landmarks, args.target_landmarks],
+                       shape=shape)
+    progress(f"read and resampled {', '.join(paths)}")
     options = TransferOptions.published() if args.method == "published" else TransferOptions()
     result = transfer(*grids, args.au, args.magnitude, options=options, progress=progress)
     progress(f"transferred {'+'.join(result.animation.labels)} at magnitude {args.magnitude:g}")

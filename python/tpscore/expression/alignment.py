@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 from ..face.landmarks import MIRROR_LANDMARK
 from ..face.normalise import FrameTransform, similarity_transform
 from ..face.grid import FaceGrid
+from ..mesh import face_normals
 from ..spatial import MeshSurface
 
 __all__ = ["rigid_landmark_fit", "align_rigid", "RigidAlignment", "fit_mirror_symmetry"]
@@ -149,12 +150,7 @@ def align_rigid(moving: FaceGrid, fixed: FaceGrid, *, fixed_surface: MeshSurface
         prior = np.ones(len(sample))
     if len(sample) < 10:
         return RigidAlignment(start, start, 0, float("nan"))
-    faces = fixed_surface.faces
-    vertices = fixed_surface.vertices
-    face_normals = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
-                            vertices[faces[:, 2]] - vertices[faces[:, 0]])
-    lengths = np.linalg.norm(face_normals, axis=1)
-    face_normals /= np.where(lengths > 0, lengths, 1.0)[:, None]
+    normals_of_faces = face_normals(fixed_surface.vertices, fixed_surface.faces)
 
     matrix = start.matrix.copy()
     done = 0
@@ -162,7 +158,7 @@ def align_rigid(moving: FaceGrid, fixed: FaceGrid, *, fixed_surface: MeshSurface
     for done in range(1, iterations + 1):
         moved = sample @ matrix[:3, :3].T + matrix[:3, 3]
         closest = fixed_surface.closest_point(moved)
-        normals = face_normals[closest.triangles]
+        normals = normals_of_faces[closest.triangles]
         # point-to-plane distance; a closest point on a triangle's edge (scan outline)
         # lies off the plane and is down-weighted by its large Euclidean distance too
         signed = np.einsum("ij,ij->i", moved - closest.points, normals)

@@ -12,6 +12,7 @@ their motion from the landmark TPS alone (:mod:`tpscore.expression.published`).
 from __future__ import annotations
 
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Sequence
 
@@ -25,11 +26,11 @@ from .action_units import ActionUnit, Activation
 from .alignment import align_rigid, fit_mirror_symmetry
 from .mirror import MirroredMotion
 from .options import TransferOptions
-from .registration import DenseMotion, register_surfaces
+from .registration import DenseMotion, MotionOptions, RegistrationGrid, prepare_registration, register_surfaces
 from .texture import track_texture
 
 __all__ = ["ControlPointMotion", "ExpressionModel", "PersonMismatchWarning", "place_control_points",
-           "align_expressive", "dense_motion", "model_expression", "mirrored", "SAME_PERSON_MEDIAN_MM"]
+           "align_expressive", "dense_motion", "model_expression", "mirror_plane", "mirrored", "uses_mirror", "registration_grid", "SAME_PERSON_MEDIAN_MM"]
 
 
 def place_control_points(action_unit: ActionUnit, reference: NormalisedFace) -> np.ndarray:
@@ -135,18 +136,41 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
     frame), with their texture when either has a colour image (warning and falling back
     to the geometry when the other has none or the images cannot be used)."""
     texture = None
-    if source_neutral.grid.image is not None or source_expressive.grid.image is not None:
-        texture = track_texture(source_neutral.grid, source_expressive.grid, options.texture)
-    return register_surfaces(source_neutral.grid.points, source_neutral.grid.mask,
-                             source_neutral.landmarks, source_expressive.surface(),
-                             source_expressive.landmarks, options.motion, texture=texture)
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-surface") as second_thread:
+        # the expressive surface is built while the texture is tracked
+        surface = second_thread.submit(source_expressive.surface)
+        if source_neutral.grid.image is not None or source_expressive.grid.image is not None:
+            texture = track_texture(source_neutral.grid, source_expressive.grid, options.texture)
+        return register_surfaces(source_neutral.grid.points, source_neutral.grid.mask,
+                                 source_neutral.landmarks, surface.result(), source_expressive.landmarks,
+                                 options.motion, texture=texture,
+                                 prepared=registration_grid(source_neutral, options.motion))
+
+
+def registration_grid(face: NormalisedFace, options: MotionOptions) -> RegistrationGrid:
+    """:func:`prepare_registration` of the face's grid with these options, made once per face."""
+    return face.derived(("registration", options),
+                        lambda f: prepare_registration(f.grid.points, f.grid.mask, options))
+
+
+def uses_mirror(activations: Sequence[Activation], options: TransferOptions) -> bool:
+    """Whether the modelled motion is averaged with its mirror image: on by default for
+    an expression of both sides (no AU with a side of its own)."""
+    return options.method != "published" and options.mirror_average \
+        and all(act.side is None for act in activations)
+
+
+def mirror_plane(face: NormalisedFace):
+    """The face's mirror map (:func:`fit_mirror_symmetry` on its own surface), fitted
+    once per face; a ValueError when the plane cannot be fitted."""
+    return face.derived("mirror", lambda f: fit_mirror_symmetry(f.grid, fixed_surface=f.surface()))
 
 
 def mirrored(field, face: NormalisedFace):
     """A displacement field on ``face`` averaged with its mirror image across the face's
     plane of symmetry, or unchanged (with a warning) when the plane cannot be fitted."""
     try:
-        mirror = fit_mirror_symmetry(face.grid, fixed_surface=face.surface())
+        mirror = mirror_plane(face)
     except ValueError as error:
         warnings.warn(f"the field is not averaged with its mirror image: {error}", stacklevel=3)
         return field
@@ -169,7 +193,7 @@ def model_expression(source_neutral: NormalisedFace, source_expressive: Normalis
                                      merge_mm=options.merge_landmarks_mm, what="source neutral -> expressive")
     else:
         dense = dense_motion(source_neutral, source_expressive, options)
-        if options.mirror_average and all(act.side is None for act in activations):
+        if uses_mirror(activations, options):
             dense = mirrored(dense, source_neutral)
     motions = []
     for act in activations:

@@ -10,6 +10,7 @@ motion carried onto the target as one field per AU (:mod:`tpscore.expression.ani
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Mapping
@@ -24,7 +25,8 @@ from ..face.pose import check_landmarks
 from ..face.regions import region_boundary
 from .action_units import ActionUnitLibrary, default_library
 from .animation import Animation, animate, magnitude_weights
-from .modelling import ExpressionModel, align_expressive, model_expression
+from .modelling import (ExpressionModel, align_expressive, mirror_plane, model_expression, registration_grid,
+                        uses_mirror)
 from .options import TransferOptions
 
 __all__ = ["TransferResult", "transfer"]
@@ -212,23 +214,48 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
     with _naming("target"):
         target_face = normalise_face(target, reference_face.landmarks, normalisation)
     lap("normalise")
-    with _naming("source_expressive"):
-        if options.method == "published":
-            expressive = normalise_face(source_expressive, reference_face.landmarks, normalisation)
-        else:
-            expressive = align_expressive(neutral, source_neutral, source_expressive,
-                                          [a.action_unit.region for a in activations])
-    lap("align")
-    model = model_expression(neutral, expressive, activations, reference_face, options)
-    lap("model")
-    if model.texture is not None:
-        # the texture tracking ran inside the modelling; report it as its own stage
-        timings["texture"] = model.texture.seconds
-        timings["model"] -= model.texture.seconds
-    animation = animate(model, target_face)
-    lap("animate")
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-transfer") as second_thread:
+        # what the two faces need later does not depend on the source's motion: a second
+        # thread computes it while this one models the motion
+        prepared = second_thread.submit(_prepare, neutral, target_face, activations, options)
+        with _naming("source_expressive"):
+            if options.method == "published":
+                expressive = normalise_face(source_expressive, reference_face.landmarks, normalisation)
+            else:
+                expressive = align_expressive(neutral, source_neutral, source_expressive,
+                                              [a.action_unit.region for a in activations])
+        lap("align")
+        model = model_expression(neutral, expressive, activations, reference_face, options)
+        lap("model")
+        if model.texture is not None:
+            # the texture tracking ran inside the modelling; report it as its own stage
+            timings["texture"] = model.texture.seconds
+            timings["model"] -= model.texture.seconds
+        animation = animate(model, target_face)
+        lap("animate")
+        prepared.result()
     magnitude_weights(magnitude, animation.labels)  # a mapping's labels, now that they are known
     return TransferResult(animation, magnitude, model, timings)
+
+
+def _prepare(neutral: NormalisedFace, target: NormalisedFace, activations, options: TransferOptions) -> None:
+    """What the transfer needs of the two faces alone, kept with each face, in the order
+    it is needed: the source's registration grid, then each face's mirror plane (for a
+    bilateral expression) or the target's surface. A ValueError is kept too, and raised
+    where the transfer uses the result, so errors and warnings come from the same step
+    with or without this."""
+    steps = []
+    if options.method != "published":
+        steps.append(lambda: registration_grid(neutral, options.motion))
+    if uses_mirror(activations, options):
+        steps += [lambda: mirror_plane(neutral), lambda: mirror_plane(target)]
+    else:
+        steps.append(target.surface)
+    for step in steps:
+        try:
+            step()
+        except ValueError:
+            pass
 
 
 @contextmanager

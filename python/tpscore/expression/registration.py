@@ -47,7 +47,8 @@ from ..mesh import face_normals
 from ..spatial import MeshSurface
 from .landmark_pairs import landmark_term
 
-__all__ = ["MotionOptions", "DenseMotion", "register_surfaces", "grid_normals", "rest_pull_per_node"]
+__all__ = ["MotionOptions", "DenseMotion", "RegistrationGrid", "prepare_registration", "register_surfaces",
+           "grid_normals", "rest_pull_per_node"]
 
 #: Pairs farther than this many robust scales from their target do not pull.
 TUKEY_FACTOR = 3.0
@@ -228,9 +229,41 @@ def _texture_samples(texture, sample_mask, prior, options: MotionOptions):
     return np.nan_to_num(targets), weight
 
 
+@dataclass
+class RegistrationGrid:
+    """What a registration needs from the neutral face alone (:func:`prepare_registration`):
+    the data points, the lattice and its system, and the fixed terms that do not depend
+    on the expressive scan."""
+
+    sample_mask: np.ndarray       # (H, W) bool: the grid vertices that are data points
+    sample: np.ndarray            # (m, 3) their positions
+    lattice: BSplineLattice
+    system: LatticeSystem
+    rest: np.ndarray              # (n_nodes,) each node's pull toward rest
+    bending_values: np.ndarray    # the bending energy in the system's pattern
+
+
+def prepare_registration(neutral_points, neutral_mask, options: MotionOptions = MotionOptions()) -> RegistrationGrid:
+    """The part of :func:`register_surfaces` that depends on the neutral grid and the
+    options alone: made once, it can be made ahead (a transfer makes it on a second
+    thread while it aligns the expressive scan and tracks the texture)."""
+    points = np.asarray(neutral_points, dtype=np.float64)
+    mask = np.asarray(neutral_mask, dtype=bool)
+    sample_mask = np.zeros(mask.shape, dtype=bool)
+    sample_mask[::options.sample_step, ::options.sample_step] = True
+    sample_mask &= mask
+    sample = points[sample_mask]
+    valid = points[mask]
+    lattice = BSplineLattice(valid[:, :2].min(axis=0), valid[:, :2].max(axis=0), options.spacing_mm)
+    system = LatticeSystem(lattice, sample[:, :2])
+    rest = rest_pull_per_node(system.basis, grid_normals(points)[sample_mask], options.rest_weight)
+    bending_values = system.aligned(sp.block_diag([lattice.bending()] * 3))
+    return RegistrationGrid(sample_mask, sample, lattice, system, rest, bending_values)
+
+
 def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressive_surface: MeshSurface,
                       expressive_landmarks, options: MotionOptions = MotionOptions(), weight=None,
-                      texture=None) -> DenseMotion:
+                      texture=None, prepared: RegistrationGrid | None = None) -> DenseMotion:
     """Register a neutral face grid onto an expressive surface of the same person.
 
     Parameters
@@ -250,6 +283,9 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         Matches of the neutral grid's vertices on the expressive surface by their skin's
         pattern (:func:`tpscore.expression.texture.track_texture`); without them the
         geometry and the landmarks alone say how the skin slides.
+    prepared : RegistrationGrid, optional
+        :func:`prepare_registration` of these neutral points, mask and options, if
+        already made.
 
     Returns
     -------
@@ -257,21 +293,17 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     """
     points = np.asarray(neutral_points, dtype=np.float64)
     mask = np.asarray(neutral_mask, dtype=bool)
-    sample_mask = np.zeros(mask.shape, dtype=bool)
-    sample_mask[::options.sample_step, ::options.sample_step] = True
-    sample_mask &= mask
-    sample = points[sample_mask]
+    if prepared is None:
+        prepared = prepare_registration(points, mask, options)
+    sample_mask, sample, lattice, system = prepared.sample_mask, prepared.sample, prepared.lattice, prepared.system
     prior = np.ones(len(sample)) if weight is None else np.asarray(weight, dtype=np.float64)[sample_mask]
     valid = points[mask]
-    lattice = BSplineLattice(valid[:, :2].min(axis=0), valid[:, :2].max(axis=0), options.spacing_mm)
-    system = LatticeSystem(lattice, sample[:, :2])
     basis, n_nodes = system.basis, lattice.n_nodes
     # the terms that do not change over the iterations, in the system's pattern
     landmarks, landmark_rhs = landmark_term(lattice, points, mask, neutral_landmarks, expressive_landmarks,
                                             expressive_surface, options.landmark_weight, texture)
-    rest = rest_pull_per_node(basis, grid_normals(points)[sample_mask], options.rest_weight)
-    fixed_values = system.aligned(landmarks + sp.block_diag([sp.diags(_RIDGE + rest, format="csr")] * 3))
-    bending_values = system.aligned(sp.block_diag([lattice.bending()] * 3))
+    fixed_values = system.aligned(landmarks + sp.block_diag([sp.diags(_RIDGE + prepared.rest, format="csr")] * 3))
+    bending_values = prepared.bending_values
     if texture is not None:
         texture_targets, texture_prior = _texture_samples(texture, sample_mask, prior, options)
     surface_normals = face_normals(expressive_surface.vertices, expressive_surface.faces)

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -229,6 +230,27 @@ def _pattern(view: TextureView, sigma_px: float) -> np.ndarray:
     return np.where(view.valid, detail / contrast, 0.0).astype(np.float32)
 
 
+@dataclass
+class _Look:
+    """A scan seen in the texture plane: its view, how bright it is and how much
+    pattern it shows, and the pattern itself (None when it is too dark or flat)."""
+
+    view: TextureView
+    brightness: float
+    detail: float
+    pattern: np.ndarray | None
+
+
+def _look(grid: FaceGrid, plane: TexturePlane, sigma_px: float) -> _Look:
+    view = render_texture(grid, plane)
+    brightness = float(np.median(view.grey[view.valid])) if view.valid.any() else 0.0
+    if brightness < 8.0:
+        return _Look(view, brightness, 0.0, None)
+    detail = _detail_rms(view, sigma_px)
+    pattern = _pattern(view, sigma_px) if detail >= _MIN_DETAIL_GREY else None
+    return _Look(view, brightness, detail, pattern)
+
+
 def _eight_bit(pattern: np.ndarray) -> np.ndarray:
     # DIS works on 8-bit images; +-4 local standard deviations span the range
     return np.clip(128.0 + 32.0 * pattern, 0, 255).astype(np.uint8)
@@ -361,22 +383,23 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid,
     extent = np.ptp(valid_points[:, :2], axis=0).max()
     pixel_mm = max(pixel_mm, 0.1, extent / 2048.0)
     plane = TexturePlane.covering(valid_points, pixel_mm)
-    views = [render_texture(grid, plane) for grid in (neutral, expressive)]
-    for name, view in zip(("neutral", "expressive"), views):
-        brightness = float(np.median(view.grey[view.valid])) if view.valid.any() else 0.0
-        if brightness < 8.0:
-            warnings.warn(f"the {name} scan's colour image is too dark (median grey {brightness:.1f} of "
+    sigma_px = options.shading_sigma_mm / pixel_mm
+    # the two scans are seen on two threads: rendering and filtering release the GIL
+    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="tpscore-texture") as pool:
+        looks = list(pool.map(lambda grid: _look(grid, plane, sigma_px), (neutral, expressive)))
+    for name, look in zip(("neutral", "expressive"), looks):
+        if look.brightness < 8.0:
+            warnings.warn(f"the {name} scan's colour image is too dark (median grey {look.brightness:.1f} of "
                           "255): the motion comes from the geometry alone", TextureWarning, stacklevel=2)
             return None
-    sigma_px = options.shading_sigma_mm / pixel_mm
-    for name, view in zip(("neutral", "expressive"), views):
-        detail = _detail_rms(view, sigma_px)
-        if detail < _MIN_DETAIL_GREY:
-            warnings.warn(f"the {name} scan's colour image shows no texture (detail of {detail:.2f} grey "
+    for name, look in zip(("neutral", "expressive"), looks):
+        if look.detail < _MIN_DETAIL_GREY:
+            warnings.warn(f"the {name} scan's colour image shows no texture (detail of {look.detail:.2f} grey "
                           f"levels rms, at least {_MIN_DETAIL_GREY} needed): the motion comes from the "
                           "geometry alone", TextureWarning, stacklevel=2)
             return None
-    tracker = _Tracker(neutral, plane, views, [_pattern(view, sigma_px) for view in views], pixel_mm, options)
+    tracker = _Tracker(neutral, plane, [look.view for look in looks], [look.pattern for look in looks],
+                       pixel_mm, options)
     matches = tracker.match()
     if matches is None:
         warnings.warn(f"texture tracking matched less than {100 * options.min_matched_fraction:.0f} % of the "

@@ -19,6 +19,7 @@ from landmarks that every method places things in.
 """
 from __future__ import annotations
 
+import threading
 import warnings
 from dataclasses import dataclass, field, replace
 
@@ -153,27 +154,59 @@ def landmark_transform(landmarks, reference, method: str = "similarity") -> Fram
 
 @dataclass
 class NormalisedFace:
-    """A face grid in the reference frame, with the transform from its scan frame."""
+    """A face grid in the reference frame, with the transform from its scan frame.
+
+    What is derived from the face (its surface, its kd-tree, anything kept with
+    :meth:`derived`) is computed once, by whichever thread asks first; a transfer
+    computes some of it on a second thread ahead of use.
+    """
 
     grid: FaceGrid
     transform: FrameTransform
-    _surface: MeshSurface | None = field(default=None, repr=False)
-    _tree: KDTree | None = field(default=None, repr=False)
-    _valid_index: np.ndarray | None = field(default=None, repr=False)
+    _surface: MeshSurface | None = field(default=None, repr=False, init=False)
+    _tree: KDTree | None = field(default=None, repr=False, init=False)
+    _valid_index: np.ndarray | None = field(default=None, repr=False, init=False)
+    _derived: dict = field(default_factory=dict, repr=False, init=False, compare=False)
+    _lock: threading.RLock = field(default_factory=threading.RLock, repr=False, init=False, compare=False)
 
     @property
     def landmarks(self) -> np.ndarray:
         return self.grid.landmarks
 
+    def derived(self, name, compute):
+        """``compute(self)``, computed once per ``name`` (hashable; a ValueError it raised is
+        raised again on every later call); the threads that ask meanwhile wait for it."""
+        with self._lock:
+            if name not in self._derived:
+                try:
+                    self._derived[name] = (compute(self), None)
+                except ValueError as error:
+                    self._derived[name] = (None, error)
+            value, error = self._derived[name]
+        if error is not None:
+            raise error
+        return value
+
     def _build(self):
-        if self._tree is None:
-            flat = self.grid.points.reshape(-1, 3)
-            self._valid_index = np.flatnonzero(self.grid.mask.ravel())
-            if len(self._valid_index) < 3:
+        """The valid vertices and the surface over them (None without triangles)."""
+        with self._lock:
+            if self._valid_index is not None:
+                return
+            valid_index = np.flatnonzero(self.grid.mask.ravel())
+            if len(valid_index) < 3:
                 raise ValueError("the face has fewer than 3 valid vertices")
-            self._tree = KDTree(flat[self._valid_index])
             mesh = self.grid.mesh()
             self._surface = MeshSurface(mesh.vertices, mesh.faces) if len(mesh.faces) else None
+            self._valid_index = valid_index
+
+    def _vertex_tree(self) -> KDTree:
+        """A kd-tree of the valid vertices, built on first use (the default transfer
+        snaps onto the surface and never needs it)."""
+        self._build()
+        with self._lock:
+            if self._tree is None:
+                self._tree = KDTree(self.grid.points.reshape(-1, 3)[self._valid_index])
+            return self._tree
 
     def snap(self, points, mode: str) -> np.ndarray:
         """Snap (k, 3) points onto this face: closest surface point or nearest vertex."""
@@ -181,13 +214,13 @@ class NormalisedFace:
         points = np.asarray(points, dtype=np.float64)
         if mode == "surface" and self._surface is not None:
             return self._surface.closest_point(points).points
-        _, nearest = self._tree.query(points)
-        return self._tree.points[nearest]
+        tree = self._vertex_tree()
+        _, nearest = tree.query(points)
+        return tree.points[nearest]
 
     def nearest_vertex(self, points) -> np.ndarray:
         """Flat grid index (into H*W) of the valid vertex nearest to each (k, 3) point."""
-        self._build()
-        _, nearest = self._tree.query(np.asarray(points, dtype=np.float64))
+        _, nearest = self._vertex_tree().query(np.asarray(points, dtype=np.float64))
         return self._valid_index[nearest]
 
     def surface(self) -> MeshSurface:
