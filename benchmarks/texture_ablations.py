@@ -25,7 +25,7 @@ def _without_texture_strength():
 
 def _without_shading_removal():
     """Grey levels normalised over the whole face only: shading stays in the images."""
-    def pattern(view, sigma_px):
+    def pattern(view, sigma_px, detail=None):
         grey = view.grey[view.valid]
         out = (view.grey - grey.mean()) / max(float(grey.std()), 1e-6)
         return np.where(view.valid, out, 0.0).astype(np.float32)
@@ -54,7 +54,7 @@ def _without_common_rendering():
         view.grey = grey_levels(sample_image(grid.image, plane_uv)).astype(np.float32)
         return view
 
-    def pattern(view, sigma_px):
+    def pattern(view, sigma_px, detail=None):
         everywhere = texture.TextureView(view.grey, view.points, np.ones_like(view.valid))
         return original_pattern(everywhere, sigma_px)
 

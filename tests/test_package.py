@@ -22,6 +22,32 @@ def test_thread_count_can_be_set_and_restored():
     assert tpscore.num_threads() == default
 
 
+def test_blas_runs_on_one_thread_while_a_transfer_runs_and_is_restored_after():
+    from threadpoolctl import threadpool_info, threadpool_limits
+    from tpscore._threads import blas_on_one_thread, single_threaded_blas
+
+    def blas_threads():
+        return [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = blas_threads()
+        assert before and max(before) == 2
+        seen = []
+
+        @blas_on_one_thread
+        def inside():
+            seen.append(blas_threads())
+            with single_threaded_blas():      # nested
+                seen.append(blas_threads())
+            seen.append(blas_threads())      # still limited: the outer block runs on
+            raise KeyError("leaves by an exception")
+
+        with pytest.raises(KeyError):
+            inside()
+        assert seen == [[1] * len(before)] * 3
+        assert blas_threads() == before
+
+
 def test_stub_file_ships_with_the_extension():
     from pathlib import Path
 

@@ -1,11 +1,17 @@
-"""The thread count of the compiled kernels."""
+"""The thread count of the compiled kernels, and BLAS kept to one thread while a
+transfer runs."""
 from __future__ import annotations
 
+import functools
 import numbers
+import threading
+from contextlib import contextmanager
+
+from threadpoolctl import ThreadpoolController
 
 from . import _core
 
-__all__ = ["num_threads", "set_num_threads", "max_threads"]
+__all__ = ["num_threads", "set_num_threads", "max_threads", "single_threaded_blas", "blas_on_one_thread"]
 
 
 def num_threads() -> int:
@@ -47,3 +53,46 @@ def set_num_threads(n: int) -> None:
     count = int(n)
     # The core takes a C int; anything beyond the cap means the cap.
     _core.set_num_threads(max(0, min(count, _core.max_threads())))
+
+
+_blas_lock = threading.Lock()
+_blas_users = 0
+_blas_limit = None
+_blas_controller = None
+
+
+@contextmanager
+def single_threaded_blas():
+    """BLAS (the OpenBLAS under NumPy and SciPy) on one thread while the block runs.
+
+    A transfer makes many small matrix products, which gain nothing from more threads,
+    while OpenBLAS's idle threads spin for a while after each and take a core from
+    tpscore's own threads (a transfer's registration took 20 % longer on two cores).
+    Blocks that overlap, in one thread or several, share one limit: the thread counts
+    in force before the first are restored after the last.
+    """
+    global _blas_users, _blas_limit, _blas_controller
+    with _blas_lock:
+        if _blas_users == 0:
+            if _blas_controller is None:
+                # found once (a millisecond); the BLAS libraries are loaded by then
+                _blas_controller = ThreadpoolController()
+            _blas_limit = _blas_controller.limit(limits=1, user_api="blas")
+        _blas_users += 1
+    try:
+        yield
+    finally:
+        with _blas_lock:
+            _blas_users -= 1
+            if _blas_users == 0:
+                _blas_limit.restore_original_limits()
+                _blas_limit = None
+
+
+def blas_on_one_thread(function):
+    """Decorate a function to run within :func:`single_threaded_blas`."""
+    @functools.wraps(function)
+    def on_one_thread(*args, **kwargs):
+        with single_threaded_blas():
+            return function(*args, **kwargs)
+    return on_one_thread

@@ -17,6 +17,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
+from .._threads import blas_on_one_thread
 from ..face.average_face import AverageFace, load_average_face
 from ..face.grid import FaceGrid
 from ..face.landmarks import MIN_LANDMARKS, N_LANDMARKS
@@ -137,6 +138,7 @@ class TransferResult:
         )
 
 
+@blas_on_one_thread
 def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: FaceGrid, action_units,
              magnitude=1.0, *, reference=None, library: ActionUnitLibrary | None = None,
              options: TransferOptions = TransferOptions(),

@@ -134,7 +134,8 @@ def render_texture(grid: FaceGrid, plane: TexturePlane) -> TextureView:
     image_pixels = mesh.uv * np.array(grid.image.shape[1::-1], dtype=np.float64) - 0.5
     seen = interpolate_pixels(np.column_stack([mesh.vertices, image_pixels]), mesh.faces, triangle, barycentric)
     covered = triangle >= 0
-    where = np.where(covered[..., None], seen[..., 3:], -1.0).astype(np.float32)
+    where = seen[..., 3:].astype(np.float32)
+    where[~covered] = -1.0
     grey = cv2.remap(grey_levels(grid.image), where[..., 0], where[..., 1], cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REPLICATE)
     grey[~covered] = 0.0
@@ -198,28 +199,31 @@ def _image_pixel_mm(grid: FaceGrid) -> float:
     return float(1.0 / np.sqrt(abs(np.linalg.det(solution[:2]))))
 
 
-def _detail_rms(view: TextureView, sigma_px: float) -> float:
-    """RMS of the grey levels minus their local mean over the surface: the strength of
-    the image's pattern in grey levels (0 for a flat image)."""
+def _detail(view: TextureView, sigma_px: float) -> np.ndarray:
+    """(h, w) float32 grey levels minus their local mean over the surface (0 off it)."""
 
     valid = view.valid.astype(np.float32)
     grey = np.where(view.valid, view.grey, 0.0).astype(np.float32)
     mean = cv2.GaussianBlur(grey, (0, 0), sigma_px) / np.maximum(cv2.GaussianBlur(valid, (0, 0), sigma_px), 1e-3)
-    detail = (grey - mean)[view.valid]
-    return float(np.sqrt(np.mean(detail * detail))) if detail.size else 0.0
+    return np.where(view.valid, grey - mean, 0.0).astype(np.float32)
 
 
-def _pattern(view: TextureView, sigma_px: float) -> np.ndarray:
-    """The skin's pattern: grey levels minus their local mean over the surface, over
-    their local rms contrast (shading, exposure and white balance drop out)."""
+def _detail_rms(view: TextureView, detail: np.ndarray) -> float:
+    """RMS of a view's :func:`_detail` over the surface: the strength of the image's
+    pattern in grey levels (0 for a flat image)."""
 
+    inside = detail[view.valid]
+    return float(np.sqrt(np.mean(inside * inside))) if inside.size else 0.0
+
+
+def _pattern(view: TextureView, sigma_px: float, detail: np.ndarray | None = None) -> np.ndarray:
+    """The skin's pattern: grey levels minus their local mean over the surface (the
+    view's :func:`_detail`, if already computed), over their local rms contrast
+    (shading, exposure and white balance drop out)."""
+
+    if detail is None:
+        detail = _detail(view, sigma_px)
     valid = view.valid.astype(np.float32)
-    grey = np.where(view.valid, view.grey, 0.0).astype(np.float32)
-
-    def local_mean(image, sigma):
-        return cv2.GaussianBlur(image, (0, 0), sigma) / np.maximum(cv2.GaussianBlur(valid, (0, 0), sigma), 1e-3)
-
-    detail = np.where(view.valid, grey - local_mean(grey, sigma_px), 0.0).astype(np.float32)
     # the contrast varies over centimetres: estimate it on a quarter-resolution image
     height, width = detail.shape
     small = (max(width // 4, 1), max(height // 4, 1))
@@ -246,9 +250,10 @@ def _look(grid: FaceGrid, plane: TexturePlane, sigma_px: float) -> _Look:
     brightness = float(np.median(view.grey[view.valid])) if view.valid.any() else 0.0
     if brightness < 8.0:
         return _Look(view, brightness, 0.0, None)
-    detail = _detail_rms(view, sigma_px)
-    pattern = _pattern(view, sigma_px) if detail >= _MIN_DETAIL_GREY else None
-    return _Look(view, brightness, detail, pattern)
+    detail = _detail(view, sigma_px)
+    strength = _detail_rms(view, detail)
+    pattern = _pattern(view, sigma_px, detail) if strength >= _MIN_DETAIL_GREY else None
+    return _Look(view, brightness, strength, pattern)
 
 
 def _eight_bit(pattern: np.ndarray) -> np.ndarray:
@@ -343,10 +348,12 @@ class _Tracker:
             return None
         if warp is not None:
             land = bilinear(warp, land[:, 0], land[:, 1]).astype(np.float64)
-        landed = bilinear(np.nan_to_num(self.views[1].points), land[:, 0], land[:, 1])
+        # a match lands inside the eroded surface, so the four pixels around it are
+        # all on the surface (none is NaN)
+        landed = bilinear(self.views[1].points, land[matched, 0], land[matched, 1])
         shape = self.neutral.points.shape
         targets = np.full((self.valid.size, 3), np.nan)
-        targets[np.flatnonzero(self.valid)[matched]] = landed[matched]
+        targets[np.flatnonzero(self.valid)[matched]] = landed
         confidence = np.zeros(self.valid.shape)
         confidence[self.valid] = np.where(matched, self.strength_weight, 0.0)
         return TextureMatches(targets.reshape(shape), confidence.reshape(shape[:2]), matched_fraction,

@@ -32,7 +32,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
-from .._threads import num_threads
+from .._threads import blas_on_one_thread, num_threads
 from .._validation import MAX_COORDINATE, as_array, as_path, as_positive
 from ..geometry import FrameTransform
 from .image import as_colour_image as _as_colour_image
@@ -517,6 +517,7 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
     return grid
 
 
+@blas_on_one_thread
 def load_scans(paths, landmarks_paths=None, shape=DEFAULT_GRID_SHAPE, *,
                max_gap_mm: float = DEFAULT_MAX_GAP_MM) -> list[FaceGrid]:
     """:func:`load_scan` for several scans at once, on as many threads as the kernels
