@@ -104,9 +104,11 @@ void parallel_rows(std::size_t n, std::size_t min_chunk, int workers, Body&& bod
         return;
     }
     // parallel_for uses min(num_threads, n / min_chunk) workers, so a chunk of at least
-    // n / workers items caps the count at `workers`.
+    // floor(n / workers) items caps the count at `workers` (rounding the chunk up
+    // instead would give n / chunk = workers - 1 for most n: one thread for an odd n
+    // and workers = 2).
     if (workers > 1)
-        min_chunk = std::max<std::size_t>(min_chunk, (n + workers - 1) / static_cast<std::size_t>(workers));
+        min_chunk = std::max<std::size_t>(min_chunk, n / static_cast<std::size_t>(workers));
     parallel_for(n, min_chunk, std::forward<Body>(body));
 }
 
