@@ -106,3 +106,40 @@ def test_mirror_symmetry_needs_landmark_pairs():
     landmarks[:2] = grid.landmarks[:2]
     with pytest.raises(ValueError, match="at least 3 landmarks"):
         fit_mirror_symmetry(grid.with_landmarks(landmarks))
+
+
+@pytest.mark.parametrize("still", [False, True])
+def test_compiled_icp_follows_the_numpy_reference(smiling_pair, still):
+    from tpscore import _core
+    from tpscore.mesh import face_normals
+    from tpscore.reference.rigid import rigid_icp
+    from tpscore.spatial import MeshSurface
+
+    neutral, smiling = (_grid(s) for s in smiling_pair)
+    mesh = neutral.mesh()
+    surface = MeshSurface(mesh.vertices, mesh.faces)
+    normals = face_normals(mesh.vertices, mesh.faces)
+    mask = np.zeros(smiling.shape, dtype=bool)
+    mask[::3, ::3] = True
+    mask &= smiling.mask
+    sample = np.ascontiguousarray(smiling.points[mask])
+    prior = (region_weight("upper", smiling.points, smiling.landmarks, 10.0)[mask] if still
+             else np.ones(len(sample)))
+    start = rigid_landmark_fit(smiling.landmarks, neutral.landmarks).matrix
+    for iterations in (1, 3, 60):
+        expected, expected_done, expected_rms = rigid_icp(surface, normals, sample, prior, start, iterations)
+        matrix, done, rms = _core.rigid_icp(surface._surface, normals, sample, np.ascontiguousarray(prior),
+                                            np.ascontiguousarray(start), iterations, 4.0, 0.3, 1e-3)
+        # the same steps; the two round differently, and a sample whose closest point
+        # sits on an edge may then take the other triangle's normal, so the poses agree
+        # to well within the scanner's noise rather than to rounding
+        moved = sample @ matrix[:3, :3].T + matrix[:3, 3]
+        reference_moved = sample @ expected[:3, :3].T + expected[:3, 3]
+        assert np.abs(moved - reference_moved).max() < 0.01
+        assert abs(rms - expected_rms) < 0.005
+        assert done == expected_done or (iterations == 60 and abs(done - expected_done) <= 3)
+    assert done < 60   # converged to the tolerance
+    # no samples with weight: no step, the start comes back
+    matrix, done, rms = _core.rigid_icp(surface._surface, normals, sample, np.zeros(len(sample)),
+                                        np.ascontiguousarray(start), 30, 4.0, 0.3, 1e-3)
+    assert done == 1 and np.array_equal(matrix, start) and np.isnan(rms)
