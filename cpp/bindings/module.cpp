@@ -15,7 +15,6 @@ void bind_sparse_solve(nb::module_& m);
 void bind_lattice_gram(nb::module_& m);
 void bind_raster(nb::module_& m);
 void bind_skin_sim(nb::module_& m);
-void bind_rigid_icp(nb::module_& m);
 
 NB_MODULE(_core, m) {
     m.doc() = "tpscore's compiled kernels (private: use the tpscore package instead)";
@@ -35,5 +34,4 @@ NB_MODULE(_core, m) {
     bind_lattice_gram(m);
     bind_raster(m);
     bind_skin_sim(m);
-    bind_rigid_icp(m);
 }

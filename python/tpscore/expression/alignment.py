@@ -27,8 +27,8 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from .. import _core
 from ..face.landmarks import MIRROR_LANDMARK
 from ..face.normalise import FrameTransform, similarity_transform
 from ..face.grid import FaceGrid
@@ -152,11 +152,38 @@ def align_rigid(moving: FaceGrid, fixed: FaceGrid, *, fixed_surface: MeshSurface
         return RigidAlignment(start, start, 0, float("nan"))
     normals_of_faces = face_normals(fixed_surface.vertices, fixed_surface.faces)
 
-    # the ICP loop runs compiled (its NumPy reference: tpscore.reference.rigid)
-    matrix, done, inlier_rms = _core.rigid_icp(
-        fixed_surface._surface, np.ascontiguousarray(normals_of_faces), np.ascontiguousarray(sample),
-        np.ascontiguousarray(prior, dtype=np.float64), np.ascontiguousarray(start.matrix, dtype=np.float64),
-        int(iterations), float(tukey_factor), float(min_scale_mm), float(tolerance_mm))
+    matrix = start.matrix.copy()
+    done = 0
+    inlier_rms = float("nan")
+    for done in range(1, iterations + 1):
+        moved = sample @ matrix[:3, :3].T + matrix[:3, 3]
+        closest = fixed_surface.closest_point(moved)
+        normals = normals_of_faces[closest.triangles]
+        # point-to-plane distance; a closest point on a triangle's edge (scan outline)
+        # lies off the plane and is down-weighted by its large Euclidean distance too
+        signed = np.einsum("ij,ij->i", moved - closest.points, normals)
+        scale = max(1.4826 * float(np.median(closest.distances[prior > 0.5])
+                                   if (prior > 0.5).any() else np.median(closest.distances)),
+                    min_scale_mm)
+        u = closest.distances / (tukey_factor * scale)
+        weight = np.where(u < 1.0, (1.0 - u * u) ** 2, 0.0) * prior
+        if weight.sum() < 6:
+            break
+        # linearised point-to-plane step: rotation vector omega and translation t
+        # (about the sample's centroid, which keeps the 6 x 6 normal equations well scaled)
+        centre = weight @ moved / weight.sum()
+        jac = np.hstack([np.cross(moved - centre, normals), normals])
+        normal_matrix = (jac * weight[:, None]).T @ jac + 1e-9 * np.eye(6)
+        step = np.linalg.solve(normal_matrix, -(jac * weight[:, None]).T @ signed)
+        rotation = Rotation.from_rotvec(step[:3]).as_matrix()
+        update = np.eye(4)
+        update[:3, :3] = rotation
+        update[:3, 3] = centre + step[3:] - rotation @ centre
+        matrix = update @ matrix
+        inlier_rms = float(np.sqrt(np.average(signed ** 2, weights=weight)))
+        motion = np.abs((moved - centre) @ (rotation - np.eye(3)).T + step[3:]).max()
+        if motion < tolerance_mm:
+            break
     final = fixed_surface.closest_point(sample @ matrix[:3, :3].T + matrix[:3, 3]).distances
     still = prior > 0.5
     median = float(np.median(final[still] if still.any() else final))
