@@ -237,23 +237,28 @@ def _pattern(view: TextureView, sigma_px: float, detail: np.ndarray | None = Non
 @dataclass
 class _Look:
     """A scan seen in the texture plane: its view, how bright it is and how much
-    pattern it shows, and the pattern itself (None when it is too dark or flat)."""
+    pattern it shows, the pattern itself (None when it is too dark or flat) and, when
+    asked for (the neutral scan's), the pattern's texture strength."""
 
     view: TextureView
     brightness: float
     detail: float
     pattern: np.ndarray | None
+    strength: np.ndarray | None = None
 
 
-def _look(grid: FaceGrid, plane: TexturePlane, sigma_px: float) -> _Look:
+def _look(grid: FaceGrid, plane: TexturePlane, sigma_px: float, strength_window_px: float | None = None) -> _Look:
     view = render_texture(grid, plane)
     brightness = float(np.median(view.grey[view.valid])) if view.valid.any() else 0.0
     if brightness < 8.0:
         return _Look(view, brightness, 0.0, None)
     detail = _detail(view, sigma_px)
-    strength = _detail_rms(view, detail)
-    pattern = _pattern(view, sigma_px, detail) if strength >= _MIN_DETAIL_GREY else None
-    return _Look(view, brightness, strength, pattern)
+    detail_rms = _detail_rms(view, detail)
+    if detail_rms < _MIN_DETAIL_GREY:
+        return _Look(view, brightness, detail_rms, None)
+    pattern = _pattern(view, sigma_px, detail)
+    strength = None if strength_window_px is None else _texture_strength(pattern, strength_window_px)
+    return _Look(view, brightness, detail_rms, pattern, strength)
 
 
 def _eight_bit(pattern: np.ndarray) -> np.ndarray:
@@ -293,7 +298,7 @@ def _inside(valid: np.ndarray, rim_px: int) -> np.ndarray:
 class _Tracker:
     """The two scans' views and patterns in one plane, ready to be matched (again)."""
 
-    def __init__(self, neutral: FaceGrid, plane: TexturePlane, views, patterns, pixel_mm: float,
+    def __init__(self, neutral: FaceGrid, plane: TexturePlane, views, patterns, strength_image: np.ndarray,
                  options: TextureOptions):
         self.neutral, self.plane, self.views, self.options = neutral, plane, views, options
         self.neutral_pattern = _eight_bit(patterns[0])
@@ -303,8 +308,7 @@ class _Tracker:
         self.begin = plane.pixels(neutral.points.reshape(-1, 3)[self.valid])
         inside = _inside(views[0].valid, options.rim_px).astype(np.float32)
         self.begin_inside = bilinear(inside, self.begin[:, 0], self.begin[:, 1]) > 0.999
-        strength = bilinear(_texture_strength(patterns[0], _STRENGTH_WINDOW_MM / pixel_mm),
-                            self.begin[:, 0], self.begin[:, 1])
+        strength = bilinear(strength_image, self.begin[:, 0], self.begin[:, 1])
         # a pattern of unit local contrast has strength ~0.02 where it is textured in both
         # directions; flat skin tends to 0
         self.strength_weight = strength / (strength + _STRENGTH_HALF)
@@ -393,7 +397,9 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid,
     sigma_px = options.shading_sigma_mm / pixel_mm
     # the two scans are seen on two threads: rendering and filtering release the GIL
     with ThreadPoolExecutor(max_workers=2, thread_name_prefix="tpscore-texture") as pool:
-        looks = list(pool.map(lambda grid: _look(grid, plane, sigma_px), (neutral, expressive)))
+        # the neutral pattern's texture strength is computed beside the expressive view
+        looks = list(pool.map(lambda grid, window: _look(grid, plane, sigma_px, window), (neutral, expressive),
+                              (_STRENGTH_WINDOW_MM / pixel_mm, None)))
     for name, look in zip(("neutral", "expressive"), looks):
         if look.brightness < 8.0:
             warnings.warn(f"the {name} scan's colour image is too dark (median grey {look.brightness:.1f} of "
@@ -406,7 +412,7 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid,
                           "geometry alone", TextureWarning, stacklevel=2)
             return None
     tracker = _Tracker(neutral, plane, [look.view for look in looks], [look.pattern for look in looks],
-                       pixel_mm, options)
+                       looks[0].strength, options)
     matches = tracker.match()
     if matches is None:
         warnings.warn(f"texture tracking matched less than {100 * options.min_matched_fraction:.0f} % of the "
