@@ -27,11 +27,13 @@ demo: install
 	$(VENV)/bin/tpscore demo --out demo-output
 
 # Speed benchmarks (pytest-benchmark; ratios in bench-output/ratios.md), then the
-# fidelity benchmark (bench-output/fidelity.md) and the batch engine's throughput
+# fidelity benchmark (bench-output/fidelity.md), a transfer's cost against grid and scan
+# size (bench-output/transfer_scale.md) and the batch engine's throughput
 # (bench-output/batch_throughput.md); all skip what needs ../shared if absent.
 bench: install
 	$(PY) -m pytest benchmarks -q -p no:cacheprovider -o python_files="bench_*.py" --benchmark-columns=min,median,mean,rounds --benchmark-sort=name
 	$(PY) benchmarks/fidelity.py $(FIDELITY_ARGS)
+	$(PY) benchmarks/transfer_scale.py
 	$(PY) benchmarks/batch_throughput.py
 
 # The physical skin's stability sweep and fidelity benchmark (about an hour and a half
