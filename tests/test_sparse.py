@@ -390,7 +390,7 @@ def test_dense_kernels_of_either_instruction_set_agree(tmp_path):
         "f.factorise(data['values'])\n"
         "np.savez(sys.argv[2], x=f.solve(data['rhs']), isa=tpscore._core.dense_kernel_isa())\n")
     subprocess.run([sys.executable, "-c", script, str(tmp_path / "system.npz"), str(tmp_path / "out.npz")],
-                   env=dict(os.environ, TPSCORE_DENSE_ISA="baseline"), check=True)
+                   env=dict(os.environ, TPSCORE_SIMD="baseline"), check=True)
     out = np.load(tmp_path / "out.npz")
     assert str(out["isa"]) == "baseline"
     # the same factorisation with differently rounded multiply-adds: agreement to

@@ -23,6 +23,14 @@ SimdLevel detect() {
 }
 }  // namespace
 
+bool simd_level_lowered_to_baseline() {
+    static const bool lowered = [] {
+        const char* requested = std::getenv("TPSCORE_SIMD");
+        return requested != nullptr && std::strcmp(requested, "baseline") == 0;
+    }();
+    return lowered;
+}
+
 SimdLevel simd_level() {
     static const SimdLevel level = detect();
     return level;

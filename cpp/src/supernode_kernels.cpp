@@ -23,8 +23,7 @@
 #include <Eigen/Core>
 #include <cmath>
 #if !defined(TPSCORE_DENSE_X86_64_V3)
-#include <cstdlib>
-#include <cstring>
+#include "tpscore/simd.hpp"
 #endif
 
 namespace tpscore {
@@ -146,9 +145,9 @@ const SupernodeKernels& supernode_kernels_baseline() {
 
 const SupernodeKernels& supernode_kernels() {
     static const SupernodeKernels& chosen = []() -> const SupernodeKernels& {
-        const char* forced = std::getenv("TPSCORE_DENSE_ISA");
-        if (forced != nullptr && std::strcmp(forced, "baseline") == 0)
-            return supernode_baseline::kernels;
+        // TPSCORE_SIMD=baseline (simd.hpp) keeps every hand-dispatched kernel, these
+        // included, on the baseline build
+        if (simd_level_lowered_to_baseline()) return supernode_baseline::kernels;
 #if defined(TPSCORE_HAVE_X86_64_V3)
         if (cpu_runs_x86_64_v3()) return supernode_x86_64_v3::kernels;
 #endif

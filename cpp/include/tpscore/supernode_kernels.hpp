@@ -52,9 +52,8 @@ struct SupernodeKernels {
 };
 
 /// The kernels for this CPU: the x86-64-v3 build when the CPU supports it and the
-/// library has one, else the baseline build. The environment variable
-/// TPSCORE_DENSE_ISA=baseline, read once, forces the baseline build (for comparing
-/// the two).
+/// library has one, else the baseline build. TPSCORE_SIMD=baseline (see simd.hpp)
+/// forces the baseline build, as it does for the other hand-dispatched kernels.
 const SupernodeKernels& supernode_kernels();
 
 /// The baseline build, always present.
