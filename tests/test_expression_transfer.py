@@ -124,6 +124,7 @@ def test_what_the_second_thread_prepares_changes_nothing(smile, monkeypatch):
     # the same transfer with nothing made ahead: each face's surface, registration grid
     # and mirror plane are then made where they are used
     monkeypatch.setattr(pipeline, "_prepare", lambda *args: None)
+    monkeypatch.setattr(pipeline, "_mirror_planes", lambda *args: None)
     in_turn = tpscore.transfer(gs, ge, gt, "12")
     assert np.array_equal(ahead.vertices, in_turn.vertices, equal_nan=True)
 
@@ -135,7 +136,7 @@ def test_a_mirror_plane_that_cannot_be_fitted_is_warned_about_where_it_is_used(s
     calls = []
 
     def plane_for_the_first_face_only(grid, **options):
-        # the second thread fits the source's plane first, then the target's
+        # the source's plane is fitted first, then the target's
         calls.append(grid)
         if len(calls) > 1:
             raise ValueError("no plane here")

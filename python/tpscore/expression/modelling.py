@@ -14,7 +14,7 @@ from __future__ import annotations
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -131,16 +131,23 @@ def align_expressive(neutral: NormalisedFace, neutral_grid: FaceGrid, expressive
 
 
 def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFace,
-                 options: TransferOptions = TransferOptions()) -> DenseMotion:
+                 options: TransferOptions = TransferOptions(),
+                 while_registering: Callable[[], object] | None = None) -> DenseMotion:
     """Register the neutral source onto its expressive scan (both in the reference
     frame), with their texture when either has a colour image (warning and falling back
-    to the geometry when the other has none or the images cannot be used)."""
+    to the geometry when the other has none or the images cannot be used).
+
+    ``while_registering`` is called as the registration starts: a caller starts there
+    the work it wants on another thread while the registration runs (it uses one core,
+    where the texture tracking before it uses two)."""
     texture = None
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-surface") as second_thread:
         # the expressive surface is built while the texture is tracked
         surface = second_thread.submit(source_expressive.surface)
         if source_neutral.grid.image is not None or source_expressive.grid.image is not None:
             texture = track_texture(source_neutral.grid, source_expressive.grid, options.texture)
+        if while_registering is not None:
+            while_registering()
         return register_surfaces(source_neutral.grid.points, source_neutral.grid.mask,
                                  source_neutral.landmarks, surface.result(), source_expressive.landmarks,
                                  options.motion, texture=texture,
@@ -179,10 +186,11 @@ def mirrored(field, face: NormalisedFace):
 
 def model_expression(source_neutral: NormalisedFace, source_expressive: NormalisedFace,
                      activations: Sequence[Activation], reference: NormalisedFace,
-                     options: TransferOptions = TransferOptions()) -> ExpressionModel:
+                     options: TransferOptions = TransferOptions(),
+                     while_registering: Callable[[], object] | None = None) -> ExpressionModel:
     """Each AU's control points on the neutral source and their motion: from the dense
     registration (the default), or from the landmark TPS and a snap onto the expressive
-    scan (the method as published)."""
+    scan (the method as published). ``while_registering``: see :func:`dense_motion`."""
     published = options.method == "published"
     snap = "vertex" if published else "surface"
     to_source = landmark_map(reference.landmarks, source_neutral.landmarks, merge_mm=options.merge_landmarks_mm,
@@ -192,7 +200,7 @@ def model_expression(source_neutral: NormalisedFace, source_expressive: Normalis
         to_expressive = landmark_map(source_neutral.landmarks, source_expressive.landmarks,
                                      merge_mm=options.merge_landmarks_mm, what="source neutral -> expressive")
     else:
-        dense = dense_motion(source_neutral, source_expressive, options)
+        dense = dense_motion(source_neutral, source_expressive, options, while_registering)
         if uses_mirror(activations, options):
             dense = mirrored(dense, source_neutral)
     motions = []

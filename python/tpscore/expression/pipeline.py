@@ -220,6 +220,15 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
         # what the two faces need later does not depend on the source's motion: a second
         # thread computes it while this one models the motion
         prepared = second_thread.submit(_prepare, neutral, target_face, activations, options)
+        mirrors = []
+
+        def while_registering():
+            # the mirror planes are needed once the source is registered: fitted on the
+            # second thread while the registration runs on one core (during the texture
+            # tracking before it both cores are busy)
+            if uses_mirror(activations, options):
+                mirrors.append(second_thread.submit(_mirror_planes, (neutral, target_face)))
+
         with _naming("source_expressive"):
             if options.method == "published":
                 expressive = normalise_face(source_expressive, reference_face.landmarks, normalisation)
@@ -227,7 +236,7 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
                 expressive = align_expressive(neutral, source_neutral, source_expressive,
                                               [a.action_unit.region for a in activations])
         lap("align")
-        model = model_expression(neutral, expressive, activations, reference_face, options)
+        model = model_expression(neutral, expressive, activations, reference_face, options, while_registering)
         lap("model")
         if model.texture is not None:
             # the texture tracking ran inside the modelling; report it as its own stage
@@ -236,23 +245,32 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
         animation = animate(model, target_face)
         lap("animate")
         prepared.result()
+        for done in mirrors:
+            done.result()
     magnitude_weights(magnitude, animation.labels)  # a mapping's labels, now that they are known
     return TransferResult(animation, magnitude, model, timings)
 
 
 def _prepare(neutral: NormalisedFace, target: NormalisedFace, activations, options: TransferOptions) -> None:
-    """What the transfer needs of the two faces alone, kept with each face, in the order
-    it is needed: the source's registration grid, then each face's mirror plane (for a
-    bilateral expression) or the target's surface. A ValueError is kept too, and raised
-    where the transfer uses the result, so errors and warnings come from the same step
-    with or without this."""
+    """What the transfer needs of the two faces alone before the registration, kept with
+    each face: the source's registration grid, then, unless the mirror planes will be
+    fitted (they include it), the target's surface. A ValueError is kept too, or raised
+    again where the transfer uses the result, so errors and warnings come from the same
+    step with or without this."""
     steps = []
     if options.method != "published":
         steps.append(lambda: registration_grid(neutral, options.motion))
-    if uses_mirror(activations, options):
-        steps += [lambda: mirror_plane(neutral), lambda: mirror_plane(target)]
-    else:
+    if not uses_mirror(activations, options):
         steps.append(target.surface)
+    _quietly(steps)
+
+
+def _mirror_planes(faces) -> None:
+    """Each face's mirror plane, kept with the face (see :func:`_prepare`)."""
+    _quietly([lambda face=face: mirror_plane(face) for face in faces])
+
+
+def _quietly(steps) -> None:
     for step in steps:
         try:
             step()
