@@ -155,6 +155,10 @@ def align_rigid(moving: FaceGrid, fixed: FaceGrid, *, fixed_surface: MeshSurface
     matrix = start.matrix.copy()
     done = 0
     inlier_rms = float("nan")
+    # the median distance over the still part when there is one (computed once: the loop
+    # runs up to 30 times on a few thousand points, where NumPy's call overhead counts)
+    scale_from = prior > 0.5 if (prior > 0.5).any() else slice(None)
+    ridge = 1e-9 * np.eye(6)
     for done in range(1, iterations + 1):
         moved = sample @ matrix[:3, :3].T + matrix[:3, 3]
         closest = fixed_surface.closest_point(moved)
@@ -162,19 +166,18 @@ def align_rigid(moving: FaceGrid, fixed: FaceGrid, *, fixed_surface: MeshSurface
         # point-to-plane distance; a closest point on a triangle's edge (scan outline)
         # lies off the plane and is down-weighted by its large Euclidean distance too
         signed = np.einsum("ij,ij->i", moved - closest.points, normals)
-        scale = max(1.4826 * float(np.median(closest.distances[prior > 0.5])
-                                   if (prior > 0.5).any() else np.median(closest.distances)),
-                    min_scale_mm)
+        scale = max(1.4826 * float(np.median(closest.distances[scale_from])), min_scale_mm)
         u = closest.distances / (tukey_factor * scale)
         weight = np.where(u < 1.0, (1.0 - u * u) ** 2, 0.0) * prior
-        if weight.sum() < 6:
+        total = weight.sum()
+        if total < 6:
             break
         # linearised point-to-plane step: rotation vector omega and translation t
         # (about the sample's centroid, which keeps the 6 x 6 normal equations well scaled)
-        centre = weight @ moved / weight.sum()
+        centre = weight @ moved / total
         jac = np.hstack([np.cross(moved - centre, normals), normals])
-        normal_matrix = (jac * weight[:, None]).T @ jac + 1e-9 * np.eye(6)
-        step = np.linalg.solve(normal_matrix, -(jac * weight[:, None]).T @ signed)
+        weighted = (jac * weight[:, None]).T
+        step = np.linalg.solve(weighted @ jac + ridge, -weighted @ signed)
         rotation = Rotation.from_rotvec(step[:3]).as_matrix()
         update = np.eye(4)
         update[:3, :3] = rotation
