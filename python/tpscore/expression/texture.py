@@ -337,10 +337,17 @@ class _Tracker:
             warp = self._warp(displacement)
             expressive = cv2.remap(expressive, warp, None, cv2.INTER_LINEAR, borderValue=0)
             inside = cv2.remap(inside, warp, None, cv2.INTER_LINEAR, borderValue=0)
-        flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
         expressive = _eight_bit(expressive)
-        forward = flow.calc(self.neutral_pattern, expressive, None)
-        backward = flow.calc(expressive, self.neutral_pattern, None)
+
+        def flow(first, second):
+            return cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(first, second, None)
+
+        # the two directions on two threads (OpenCV releases the GIL; each flow uses
+        # OpenCV's own threads only in parts)
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-flow") as pool:
+            backward = pool.submit(flow, expressive, self.neutral_pattern)
+            forward = flow(self.neutral_pattern, expressive)
+            backward = backward.result()
         step = bilinear(forward, self.begin[:, 0], self.begin[:, 1])
         land = self.begin + step
         back = bilinear(backward, land[:, 0], land[:, 1])
