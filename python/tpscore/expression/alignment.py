@@ -155,9 +155,11 @@ def align_rigid(moving: FaceGrid, fixed: FaceGrid, *, fixed_surface: MeshSurface
     matrix = start.matrix.copy()
     done = 0
     inlier_rms = float("nan")
-    # the median distance over the still part when there is one (computed once: the loop
-    # runs up to 30 times on a few thousand points, where NumPy's call overhead counts)
-    scale_from = prior > 0.5 if (prior > 0.5).any() else slice(None)
+    # the median distances (the robust scale, and the fit's measure at the end) over the
+    # still part when there is one; chosen once: the loop runs up to 30 times on a few
+    # thousand points, where NumPy's call overhead counts
+    still = prior > 0.5
+    scale_from = still if still.any() else slice(None)
     ridge = 1e-9 * np.eye(6)
     for done in range(1, iterations + 1):
         moved = sample @ matrix[:3, :3].T + matrix[:3, 3]
@@ -188,8 +190,7 @@ def align_rigid(moving: FaceGrid, fixed: FaceGrid, *, fixed_surface: MeshSurface
         if motion < tolerance_mm:
             break
     final = fixed_surface.closest_point(sample @ matrix[:3, :3].T + matrix[:3, 3]).distances
-    still = prior > 0.5
-    median = float(np.median(final[still] if still.any() else final))
+    median = float(np.median(final[scale_from]))
     return RigidAlignment(FrameTransform(matrix, "rigid"), start, done, inlier_rms, median)
 
 

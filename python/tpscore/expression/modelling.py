@@ -30,7 +30,8 @@ from .registration import DenseMotion, MotionOptions, RegistrationGrid, prepare_
 from .texture import track_texture
 
 __all__ = ["ControlPointMotion", "ExpressionModel", "PersonMismatchWarning", "place_control_points",
-           "align_expressive", "dense_motion", "model_expression", "mirror_plane", "mirrored", "uses_mirror", "registration_grid", "SAME_PERSON_MEDIAN_MM"]
+           "align_expressive", "dense_motion", "model_expression", "mirror_plane", "mirrored", "uses_mirror",
+           "registration_grid", "SAME_PERSON_MEDIAN_MM"]
 
 
 def place_control_points(action_unit: ActionUnit, reference: NormalisedFace) -> np.ndarray:

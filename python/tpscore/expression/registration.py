@@ -297,7 +297,6 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         prepared = prepare_registration(points, mask, options)
     sample_mask, sample, lattice, system = prepared.sample_mask, prepared.sample, prepared.lattice, prepared.system
     prior = np.ones(len(sample)) if weight is None else np.asarray(weight, dtype=np.float64)[sample_mask]
-    valid = points[mask]
     basis, n_nodes = system.basis, lattice.n_nodes
     # the terms that do not change over the iterations, in the system's pattern
     landmarks, landmark_rhs = landmark_term(lattice, points, mask, neutral_landmarks, expressive_landmarks,
@@ -316,7 +315,7 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
             # the stiff first iterations have found the large motions: match the texture
             # again with the expressive image warped back by them
             displacement = np.full(points.shape, np.nan)
-            displacement[mask] = lattice.evaluate(valid[:, :2], values)
+            displacement[mask] = lattice.evaluate(points[mask][:, :2], values)
             texture = texture.refined(displacement)
             texture_targets, texture_prior = _texture_samples(texture, sample_mask, prior, options)
         moved = sample + basis @ values

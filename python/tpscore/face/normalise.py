@@ -163,9 +163,6 @@ class NormalisedFace:
 
     grid: FaceGrid
     transform: FrameTransform
-    _surface: MeshSurface | None = field(default=None, repr=False, init=False)
-    _tree: KDTree | None = field(default=None, repr=False, init=False)
-    _valid_index: np.ndarray | None = field(default=None, repr=False, init=False)
     _derived: dict = field(default_factory=dict, repr=False, init=False, compare=False)
     _lock: threading.RLock = field(default_factory=threading.RLock, repr=False, init=False, compare=False)
 
@@ -187,33 +184,25 @@ class NormalisedFace:
             raise error
         return value
 
-    def _build(self):
-        """The valid vertices and the surface over them (None without triangles)."""
-        with self._lock:
-            if self._valid_index is not None:
-                return
-            valid_index = np.flatnonzero(self.grid.mask.ravel())
-            if len(valid_index) < 3:
-                raise ValueError("the face has fewer than 3 valid vertices")
-            mesh = self.grid.mesh()
-            self._surface = MeshSurface(mesh.vertices, mesh.faces) if len(mesh.faces) else None
-            self._valid_index = valid_index
+    def _valid_index(self) -> np.ndarray:
+        """Flat grid indices of the valid vertices (at least 3)."""
+        return self.derived("valid vertices", _valid_vertices)
+
+    def _surface_or_none(self) -> MeshSurface | None:
+        """The surface over the valid vertices, None when they make no triangle."""
+        return self.derived("surface", _surface_over_valid_vertices)
 
     def _vertex_tree(self) -> KDTree:
         """A kd-tree of the valid vertices, built on first use (the default transfer
         snaps onto the surface and never needs it)."""
-        self._build()
-        with self._lock:
-            if self._tree is None:
-                self._tree = KDTree(self.grid.points.reshape(-1, 3)[self._valid_index])
-            return self._tree
+        return self.derived("vertex tree", lambda face: KDTree(face.grid.points.reshape(-1, 3)[face._valid_index()]))
 
     def snap(self, points, mode: str) -> np.ndarray:
         """Snap (k, 3) points onto this face: closest surface point or nearest vertex."""
-        self._build()
+        surface = self._surface_or_none()
         points = np.asarray(points, dtype=np.float64)
-        if mode == "surface" and self._surface is not None:
-            return self._surface.closest_point(points).points
+        if mode == "surface" and surface is not None:
+            return surface.closest_point(points).points
         tree = self._vertex_tree()
         _, nearest = tree.query(points)
         return tree.points[nearest]
@@ -221,13 +210,26 @@ class NormalisedFace:
     def nearest_vertex(self, points) -> np.ndarray:
         """Flat grid index (into H*W) of the valid vertex nearest to each (k, 3) point."""
         _, nearest = self._vertex_tree().query(np.asarray(points, dtype=np.float64))
-        return self._valid_index[nearest]
+        return self._valid_index()[nearest]
 
     def surface(self) -> MeshSurface:
-        self._build()
-        if self._surface is None:
+        surface = self._surface_or_none()
+        if surface is None:
             raise ValueError("the face has no triangles (too few valid grid vertices)")
-        return self._surface
+        return surface
+
+
+def _valid_vertices(face: NormalisedFace) -> np.ndarray:
+    valid_index = np.flatnonzero(face.grid.mask.ravel())
+    if len(valid_index) < 3:
+        raise ValueError("the face has fewer than 3 valid vertices")
+    return valid_index
+
+
+def _surface_over_valid_vertices(face: NormalisedFace) -> MeshSurface | None:
+    face._valid_index()  # refuses a face of fewer than 3 valid vertices first
+    mesh = face.grid.mesh()
+    return MeshSurface(mesh.vertices, mesh.faces) if len(mesh.faces) else None
 
 
 def normalise_face(grid: FaceGrid, reference_landmarks, method: str = "similarity") -> NormalisedFace:
