@@ -74,16 +74,22 @@ def parse_subjects(text: str) -> list[int]:
     return out
 
 
-def ensure_scans(shared: Path, out: Path, subjects: list[int], scan_args: list[str] = ()) -> None:
+def ensure_scans(shared: Path, out: Path, subjects: list[int], scan_args: list[str] = (),
+                 codes: list[str] | None = None) -> None:
+    """Make the scans of the subjects missing from out: every default expression, or only
+    the scan codes given."""
     # scans written before the generator drew colour images are written again
     images = "--texture-scale" not in scan_args or scan_args[list(scan_args).index("--texture-scale") + 1] != "0"
+    last = codes[-1] if codes else "LFAU_20_0"
     missing = [s for s in subjects
-               if not (out / f"bs{s:03d}" / f"bs{s:03d}_LFAU_20_0_gt.npz").is_file()
-               or (images and not (out / f"bs{s:03d}" / f"bs{s:03d}_LFAU_20_0.png").is_file())]
+               if not Path(f"{scan_path(out, s, last)}_gt.npz").is_file()
+               or (images and not Path(f"{scan_path(out, s, last)}.png").is_file())]
     if missing:
-        print(f"generating scans of subjects {missing} ...", flush=True)
+        print(f"generating scans of subjects {missing} in {out} ...", flush=True)
+        expressions = ["--expressions", *codes] if codes else []
         subprocess.run([sys.executable, str(shared / "tools" / "make_scans.py"), str(out),
-                        "--subjects", *map(str, missing), *scan_args], check=True, stdout=subprocess.DEVNULL)
+                        "--subjects", *map(str, missing), *expressions, *scan_args],
+                       check=True, stdout=subprocess.DEVNULL)
 
 
 def scan_path(out: Path, subject: int, code: str) -> Path:

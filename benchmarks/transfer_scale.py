@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
-import subprocess
 import sys
 import time
 import warnings
@@ -31,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from fidelity import parse_subjects, shared_dir  # noqa: E402
+from fidelity import ensure_scans, parse_subjects, scan_path, shared_dir  # noqa: E402
 
 import tpscore  # noqa: E402
 from tpscore.expression.modelling import align_expressive  # noqa: E402
@@ -44,25 +43,10 @@ OUT = Path(__file__).resolve().parents[1] / "bench-output"
 CODES = ["N_N_0", "LFAU_12_0"]
 
 
-def scan_path(folder: Path, subject: int, code: str) -> Path:
-    return folder / f"bs{subject:03d}" / f"bs{subject:03d}_{code}.bnt"
-
-
-def ensure_scans(shared: Path, folder: Path, subjects: list[int], scan_args: list[str] = ()) -> None:
-    """Make the neutral and AU12 scans (with their images) of the subjects missing from folder."""
-    missing = [s for s in subjects
-               if not all(scan_path(folder, s, code).with_suffix(".png").is_file() for code in CODES)]
-    if missing:
-        print(f"generating scans of subjects {missing} in {folder} ...", flush=True)
-        subprocess.run([sys.executable, str(shared / "tools" / "make_scans.py"), str(folder),
-                        "--subjects", *map(str, missing), "--expressions", *CODES, *scan_args],
-                       check=True, stdout=subprocess.DEVNULL)
-
-
 def one_pair(scans: Path, source: int, target: int, side: int) -> dict:
     """Seconds of each step of one transfer (source's AU12 onto target) on a side x side grid."""
-    paths = [scan_path(scans, source, "N_N_0"), scan_path(scans, source, "LFAU_12_0"),
-             scan_path(scans, target, "N_N_0")]
+    paths = [f"{scan_path(scans, subject, code)}.bnt"
+             for subject, code in ((source, "N_N_0"), (source, "LFAU_12_0"), (target, "N_N_0"))]
     start = time.perf_counter()
     grids = tpscore.load_scans(paths, shape=(side, side))
     loaded = time.perf_counter()
@@ -133,12 +117,12 @@ def main(argv=None) -> int:
     everyone = sorted(set(subjects) | {s + 1 for s in subjects})
     rows = []
     default_scans = args.out / "scans"
-    ensure_scans(shared, default_scans, everyone)
+    ensure_scans(shared, default_scans, everyone, codes=CODES)
     for side in (150, 225, 300):
         rows.append(sweep("0.7 mm depth pixels (default)", default_scans, subjects, side, args.repeats))
     for spacing, side in ((0.5, 150), (0.5, 210), (0.35, 150), (0.35, 300)):
         folder = args.out / f"scans-{spacing:g}mm"
-        ensure_scans(shared, folder, everyone, ["--spacing-mm", f"{spacing:g}"])
+        ensure_scans(shared, folder, everyone, ["--spacing-mm", f"{spacing:g}"], codes=CODES)
         rows.append(sweep(f"{spacing:g} mm depth pixels", folder, subjects, side, args.repeats))
     machine = (f"{tpscore.num_threads()} threads; tpscore {tpscore.__version__}; "
                f"{len(subjects)} pairs per row, {args.repeats} run(s) each, median")
