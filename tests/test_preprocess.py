@@ -401,6 +401,8 @@ def test_load_scans_reads_several_at_once_in_order(tmp_path):
         load_scans([paths[0], tmp_path / "broken.bnt", tmp_path / "missing.bnt"])
     with pytest.raises(ValueError, match="landmarks_paths has 1 entries for 3 paths"):
         load_scans(paths, [None])
+    with pytest.raises(ValueError, match="paths must be a sequence of scan paths"):
+        load_scans(paths[0])
 
 
 def test_load_scan_on_make_scans_output(shared, tmp_path):

@@ -23,6 +23,7 @@ column 0 the smallest x, as in a ``.bnt``; u,v are image coordinates in [0, 1]
 """
 from __future__ import annotations
 
+import os
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -544,6 +545,9 @@ def load_scans(paths, landmarks_paths=None, shape=DEFAULT_GRID_SHAPE, *,
     ValueError
         As :func:`load_scan`, for the first path in order that fails.
     """
+    if isinstance(paths, (str, bytes, os.PathLike)):
+        raise ValueError(f"paths must be a sequence of scan paths, got the one path {paths!r:.80} "
+                         "(use load_scan for one scan)")
     paths = list(paths)
     landmarks_paths = [None] * len(paths) if landmarks_paths is None else list(landmarks_paths)
     if len(landmarks_paths) != len(paths):
