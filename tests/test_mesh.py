@@ -97,6 +97,20 @@ def test_matches_reference_on_perturbed_grids(rows, cols, seed, jitter, height):
     assert_all_match_reference(vertices, faces)
 
 
+@settings(max_examples=60, deadline=None)
+@given(rows=st.integers(2, 12), cols=st.integers(2, 12), seed=st.integers(0, 2**32 - 1),
+       density=st.floats(0, 1))
+def test_grid_triangles_match_reference(rows, cols, seed, density):
+    # random masks hold every quad case: four, three (each corner missing), two or
+    # fewer valid corners
+    valid = np.random.default_rng(seed).random((rows, cols)) < density
+    grid = tpscore.FaceGrid.from_points(np.zeros((rows, cols, 3)), mask=valid)
+    triangles = grid.triangles()
+    assert triangles.dtype == np.int64 and triangles.shape[1] == 3
+    np.testing.assert_array_equal(triangles, reference.grid_triangles(valid))
+    assert valid.reshape(-1)[triangles].all()
+
+
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), n_faces=st.integers(1, 60), n_vertices=st.integers(3, 25))
 def test_matches_reference_on_random_triangle_soups(seed, n_faces, n_vertices):

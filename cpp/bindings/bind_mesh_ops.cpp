@@ -46,4 +46,11 @@ void bind_mesh_ops(nb::module_& m) {
         },
         "vertices"_a, "faces"_a, release,
         "Mean curvature H (n,), mean-curvature normal (n, 3), boundary mask (n,).");
+    m.def(
+        "grid_triangles",
+        [](const Eigen::Ref<const tpscore::BoolVector>& valid, std::int64_t height, std::int64_t width) {
+            return tpscore::grid_triangles(valid, height, width);
+        },
+        "valid"_a, "height"_a, "width"_a, release,
+        "Triangles (m, 3) over a grid's valid vertices, as flat grid indices.");
 }

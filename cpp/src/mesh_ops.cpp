@@ -350,4 +350,38 @@ MeanCurvature mean_curvature(const PointsRef& vertices, const FacesRef& faces) {
     return result;
 }
 
+Faces grid_triangles(const Eigen::Ref<const BoolVector>& valid, std::int64_t height, std::int64_t width) {
+    // Serial: two passes over the quads (count, then write) cost far less than one
+    // thread start, and a serial write keeps the row-major quad order for free.
+    const auto quad_triangles = [&](std::int64_t a) {
+        const int n = int{valid[a]} + int{valid[a + 1]} + int{valid[a + width]} + int{valid[a + width + 1]};
+        return n == 4 ? 2 : (n == 3 ? 1 : 0);
+    };
+    std::int64_t count = 0;
+    for (std::int64_t r = 0; r + 1 < height; ++r)
+        for (std::int64_t c = 0; c + 1 < width; ++c) count += quad_triangles(r * width + c);
+    Faces triangles(count, 3);
+    std::int64_t t = 0;
+    for (std::int64_t r = 0; r + 1 < height; ++r) {
+        for (std::int64_t c = 0; c + 1 < width; ++c) {
+            const std::int64_t a = r * width + c, b = a + 1, cc = a + width, d = a + width + 1;
+            switch (quad_triangles(a)) {
+                case 2:
+                    triangles.row(t++) << a, cc, d;
+                    triangles.row(t++) << a, d, b;
+                    break;
+                case 1:  // the three valid corners, winding as the full quad's halves
+                    if (!valid[a]) triangles.row(t++) << cc, d, b;
+                    else if (!valid[cc]) triangles.row(t++) << a, d, b;
+                    else if (!valid[d]) triangles.row(t++) << a, cc, b;
+                    else triangles.row(t++) << a, cc, d;
+                    break;
+                default:
+                    break;
+            }
+        }
+    }
+    return triangles;
+}
+
 }  // namespace tpscore

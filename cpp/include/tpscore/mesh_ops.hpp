@@ -98,4 +98,12 @@ struct MeanCurvature {
 /// zero-area faces).
 MeanCurvature mean_curvature(const PointsRef& vertices, const FacesRef& faces);
 
+/// Triangles over the valid vertices of a height x width grid, as row-major flat
+/// vertex indices (r * width + c). Each quad (r, c), (r, c+1), (r+1, c), (r+1, c+1)
+/// whose four vertices are valid gives (a, c, d) and (a, d, b), split along its
+/// (r, c)-(r+1, c+1) diagonal; a quad with exactly three valid vertices gives the one
+/// triangle they form, wound the same way; quads in row-major order.
+/// Preconditions: valid has height * width entries.
+Faces grid_triangles(const Eigen::Ref<const BoolVector>& valid, std::int64_t height, std::int64_t width);
+
 }  // namespace tpscore

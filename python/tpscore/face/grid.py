@@ -33,6 +33,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
+from .. import _core
 from .._threads import blas_on_one_thread, num_threads
 from .._validation import MAX_COORDINATE, as_array, as_path, as_positive
 from ..geometry import FrameTransform
@@ -224,22 +225,7 @@ class FaceGrid:
         (m, 3) int64 indices into ``self.vertices``.
         """
         height, width = self.shape
-        index = np.arange(height * width, dtype=np.int64).reshape(height, width)
-        a, b = index[:-1, :-1].ravel(), index[:-1, 1:].ravel()
-        c, d = index[1:, :-1].ravel(), index[1:, 1:].ravel()
-        flat = self.mask.reshape(-1)
-        va, vb, vc, vd = flat[a], flat[b], flat[c], flat[d]
-        n_valid = va.astype(np.int8) + vb + vc + vd
-        full = n_valid == 4
-        three = n_valid == 3
-        first = np.stack([a, c, d], axis=1)  # full quads, and quads missing only b
-        first = np.where((three & ~va)[:, None], np.stack([c, d, b], axis=1), first)
-        first = np.where((three & ~vc)[:, None], np.stack([a, d, b], axis=1), first)
-        first = np.where((three & ~vd)[:, None], np.stack([a, c, b], axis=1), first)
-        second = np.stack([a, d, b], axis=1)
-        both = np.stack([first, second], axis=1)            # (quads, 2, 3)
-        keep = np.stack([full | three, full], axis=1)        # (quads, 2)
-        return np.ascontiguousarray(both[keep])
+        return _core.grid_triangles(self.mask.reshape(-1), height, width)
 
     def mesh(self) -> GridMesh:
         """The valid vertices and the triangles over them, reindexed (see :class:`GridMesh`)."""

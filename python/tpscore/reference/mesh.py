@@ -18,6 +18,7 @@ __all__ = [
     "voronoi_areas",
     "boundary_vertices",
     "mean_curvature",
+    "grid_triangles",
 ]
 
 MAX_COTANGENT = 1e4
@@ -135,3 +136,27 @@ def mean_curvature(vertices, faces):
     h[undefined] = np.nan
     k[undefined] = np.nan
     return h, k, boundary
+
+
+def grid_triangles(valid):
+    """Triangles over the valid vertices of an (H, W) grid mask, as flat grid indices:
+    two per quad of four valid vertices, one per quad of three (see
+    :meth:`tpscore.FaceGrid.triangles`)."""
+    valid = np.asarray(valid, dtype=bool)
+    height, width = valid.shape
+    index = np.arange(height * width, dtype=np.int64).reshape(height, width)
+    a, b = index[:-1, :-1].ravel(), index[:-1, 1:].ravel()
+    c, d = index[1:, :-1].ravel(), index[1:, 1:].ravel()
+    flat = valid.reshape(-1)
+    va, vb, vc, vd = flat[a], flat[b], flat[c], flat[d]
+    n_valid = va.astype(np.int8) + vb + vc + vd
+    full = n_valid == 4
+    three = n_valid == 3
+    first = np.stack([a, c, d], axis=1)  # full quads, and quads missing only b
+    first = np.where((three & ~va)[:, None], np.stack([c, d, b], axis=1), first)
+    first = np.where((three & ~vc)[:, None], np.stack([a, d, b], axis=1), first)
+    first = np.where((three & ~vd)[:, None], np.stack([a, c, b], axis=1), first)
+    second = np.stack([a, d, b], axis=1)
+    both = np.stack([first, second], axis=1)            # (quads, 2, 3)
+    keep = np.stack([full | three, full], axis=1)        # (quads, 2)
+    return np.ascontiguousarray(both[keep]).reshape(-1, 3)
