@@ -1,3 +1,7 @@
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -78,6 +82,33 @@ def test_lattice_system_data_term_matches_the_scipy_assembly(spacing):
     # a second call overwrites, it does not accumulate
     got_again = system.matrix(system.data_term(symmetric_blocks(2.0 * q))).toarray()
     assert np.allclose(got_again, 2.0 * expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
+def test_lattice_data_term_is_the_same_to_the_bit_on_every_simd_level(tmp_path):
+    # the AVX2 path adds the same rounded products in the same order as the scalar
+    # loop: the registration's result must not depend on the CPU it runs on
+    rng = np.random.default_rng(5)
+    lattice = BSplineLattice([-40.0, -60.0], [45.0, 50.0], 6.0)
+    xy = rng.uniform([-50, -70], [55, 60], size=(900, 2))
+    blocks = symmetric_blocks(_random_symmetric(rng, len(xy)))
+    system = LatticeSystem(lattice, xy)
+    np.savez(tmp_path / "in.npz", first=system._first_node, weights=system._weights, blocks=blocks,
+             shape=np.array(lattice.shape))
+    script = (
+        "import sys, numpy as np\n"
+        "from tpscore import _core\n"
+        "d = np.load(sys.argv[1]); rows, cols = (int(v) for v in d['shape'])\n"
+        "out = np.zeros((rows * cols, 25, 6))\n"
+        "_core.lattice_block_gram_into(d['first'], d['weights'], d['blocks'], rows, cols, out)\n"
+        "np.save(sys.argv[2], out)\n")
+    results = []
+    for level in ("avx2", "baseline"):
+        target = tmp_path / f"{level}.npy"
+        subprocess.run([sys.executable, "-c", script, str(tmp_path / "in.npz"), str(target)],
+                       env={**os.environ, "TPSCORE_SIMD": level}, check=True, timeout=120)
+        results.append(np.load(target))
+    assert np.any(results[0] != 0)
+    np.testing.assert_array_equal(results[0].view(np.int64), results[1].view(np.int64))
 
 
 def test_lattice_system_solves_the_registration_terms_like_a_fresh_factorisation():
