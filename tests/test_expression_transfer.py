@@ -129,6 +129,58 @@ def test_what_the_second_thread_prepares_changes_nothing(smile, monkeypatch):
     assert np.array_equal(ahead.vertices, in_turn.vertices, equal_nan=True)
 
 
+@pytest.fixture(scope="module")
+def scan_files(tmp_path_factory):
+    """A source's neutral and smiling scans and a target's, as .bnt + .lm3 + .png."""
+    from tpscore import demo_faces
+
+    folder = tmp_path_factory.mktemp("scans")
+    return [demo_faces.make_demo_scan(person, expression, seed=seed).write(folder, name)
+            for person, expression, seed, name in ((0, None, 1, "a"), (0, {"12": 1.0}, 2, "b"), (1, None, 3, "c"))]
+
+
+def test_a_transfer_from_paths_is_the_transfer_of_the_scans_read(scan_files):
+    # read in the background (the target while the source's motion is measured), the
+    # same scans give the same result to the bit
+    from_paths = tpscore.transfer(*[str(p) for p in scan_files[:2]], scan_files[2], "12")
+    from_grids = tpscore.transfer(*tpscore.load_scans(scan_files), "12")
+    assert np.array_equal(from_paths.vertices, from_grids.vertices, equal_nan=True)
+    assert from_paths.image is not None and np.array_equal(from_paths.image, from_grids.image)
+    assert from_paths.timings["read"] > 0 and "read" not in from_grids.timings
+    # a grid and paths mixed
+    grids = tpscore.load_scans(scan_files)
+    mixed = tpscore.transfer(grids[0], scan_files[1], grids[2], "12")
+    assert np.array_equal(mixed.vertices, from_grids.vertices, equal_nan=True)
+
+
+@pytest.mark.parametrize("broken", [0, 1, 2])
+def test_a_transfer_from_paths_names_the_scan_it_cannot_read(scan_files, tmp_path, broken):
+    paths = list(scan_files)
+    paths[broken] = tmp_path / "truncated.bnt"
+    paths[broken].write_bytes(scan_files[broken].read_bytes()[:1000])
+    with pytest.raises(ValueError, match="truncated.bnt"):
+        tpscore.transfer(*paths, "12")
+
+
+def test_a_transfer_from_paths_checks_the_landmarks_of_what_it_read(scan_files, tmp_path):
+    # a target whose landmark file lost most of its rows fails as a FaceGrid would,
+    # naming the scan
+    from tpscore.face import io
+
+    landmarks = io.read_landmarks(scan_files[2].with_suffix(".lm3"))
+    landmarks[3:] = np.nan
+    sparse = tmp_path / "c.bnt"
+    sparse.write_bytes(scan_files[2].read_bytes())
+    (tmp_path / "c.png").write_bytes(scan_files[2].with_suffix(".png").read_bytes())
+    io.write_lm3(tmp_path / "c.lm3", landmarks)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(ValueError, match="target: only 3 of the 22 landmarks"):
+            tpscore.transfer(scan_files[0], scan_files[1], sparse, "12")
+    with pytest.raises(ValueError, match="target must be a FaceGrid .* or a scan's path, got int"):
+        tpscore.transfer(scan_files[0], scan_files[1], 3, "12")
+
+
 def test_a_mirror_plane_that_cannot_be_fitted_is_warned_about_where_it_is_used(smile, monkeypatch):
     (_, _, _), (gs, ge, gt) = smile
 

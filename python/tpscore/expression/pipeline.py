@@ -9,8 +9,9 @@ motion carried onto the target as one field per AU (:mod:`tpscore.expression.ani
 """
 from __future__ import annotations
 
+import os
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Mapping
@@ -19,7 +20,7 @@ import numpy as np
 
 from .._threads import blas_on_one_thread
 from ..face.average_face import AverageFace, load_average_face
-from ..face.grid import FaceGrid
+from ..face.grid import FaceGrid, load_scan
 from ..face.landmarks import MIN_LANDMARKS, N_LANDMARKS
 from ..face.normalise import NormalisedFace, normalise_face
 from ..face.pose import check_landmarks
@@ -32,7 +33,10 @@ from .options import TransferOptions
 
 __all__ = ["TransferResult", "transfer"]
 
-_STAGE_MESSAGES = {"normalise": "normalised the faces", "align": "aligned the expressive scan",
+#: A face as :func:`transfer` takes it: resampled, or the path of a scan to read.
+Scan = FaceGrid | str | os.PathLike
+
+_STAGE_MESSAGES = {"read": "read the source's scans", "normalise": "normalised the faces", "align": "aligned the expressive scan",
                    "model": "measured the source's motion", "animate": "carried the motion onto the target"}
 
 
@@ -139,7 +143,7 @@ class TransferResult:
 
 
 @blas_on_one_thread
-def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: FaceGrid, action_units,
+def transfer(source_neutral: Scan, source_expressive: Scan, target: Scan, action_units,
              magnitude=1.0, *, reference=None, library: ActionUnitLibrary | None = None,
              options: TransferOptions = TransferOptions(),
              progress: Callable[[str], None] | None = None) -> TransferResult:
@@ -147,9 +151,12 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
 
     Parameters
     ----------
-    source_neutral, source_expressive, target : FaceGrid
+    source_neutral, source_expressive, target : FaceGrid, str or path
         Resampled faces with landmarks (see :func:`tpscore.load_scan`); with their
-        colour images, the source's motion follows its skin's texture.
+        colour images, the source's motion follows its skin's texture. Or the paths of
+        scans to read with :func:`tpscore.load_scan`'s defaults (landmarks and image
+        beside each scan, a 150 x 150 grid): the source's two scans are then read side
+        by side, and the target while the source's motion is measured.
     action_units : str, mapping or sequence
         What to transfer: ``"12"``, ``"12L"``, ``"1,4,15"``, ``"sadness"``,
         ``{"12": 0.5}`` (see :meth:`ActionUnitLibrary.parse`).
@@ -170,7 +177,8 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
     Returns
     -------
     TransferResult
-        With ``timings``, the seconds each stage took.
+        With ``timings``, the seconds each stage took (``read``: reading the source's
+        scans given as paths).
 
     Raises
     ------
@@ -183,9 +191,9 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
     timings = {}
     faces = {"source_neutral": source_neutral, "source_expressive": source_expressive, "target": target}
     for name, face in faces.items():
-        if not isinstance(face, FaceGrid):
-            raise ValueError(f"{name} must be a FaceGrid (read a scan with tpscore.load_scan), "
-                             f"got {type(face).__name__} {face!r:.60}")
+        if not isinstance(face, (FaceGrid, str, os.PathLike)):
+            raise ValueError(f"{name} must be a FaceGrid (read a scan with tpscore.load_scan) or a scan's "
+                             f"path, got {type(face).__name__} {face!r:.60}")
     if not isinstance(options, TransferOptions):
         raise ValueError(f"options must be a TransferOptions (e.g. TransferOptions.published()), "
                          f"got {type(options).__name__} {options!r:.60}")
@@ -196,7 +204,8 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
     # checked before the work, so a bad magnitude fails here and not at .vertices
     magnitude_weights(magnitude)
     for name, face in faces.items():
-        _check_face(name, face)
+        if isinstance(face, FaceGrid):
+            _check_face(name, face)
 
     def lap(stage):
         nonlocal clock
@@ -211,15 +220,19 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
     lap("setup")
     # the published method normalises every scan on its own landmarks by the affine map
     normalisation = "affine" if options.method == "published" else "similarity"
-    with _naming("source_neutral"):
-        neutral = normalise_face(source_neutral, reference_face.landmarks, normalisation)
-    with _naming("target"):
-        target_face = normalise_face(target, reference_face.landmarks, normalisation)
-    lap("normalise")
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-transfer") as second_thread:
-        # what the two faces need later does not depend on the source's motion: a second
-        # thread computes it while this one models the motion
-        prepared = second_thread.submit(_prepare, neutral, target_face, activations, options)
+        # what the target and the faces need later does not depend on the source's
+        # motion: a second thread reads and prepares it while this one measures the motion
+        expressive_scan = second_thread.submit(_scan, "source_expressive", source_expressive)
+        target_ready = second_thread.submit(_target_face, target, reference_face.landmarks, normalisation)
+        source_neutral = _scan("source_neutral", source_neutral)
+        source_expressive = expressive_scan.result()
+        if not all(isinstance(face, FaceGrid) for face in faces.values()):
+            lap("read")
+        with _naming("source_neutral"):
+            neutral = normalise_face(source_neutral, reference_face.landmarks, normalisation)
+        lap("normalise")
+        prepared = second_thread.submit(_prepare, neutral, target_ready, activations, options)
         mirrors = []
 
         def while_registering():
@@ -236,6 +249,7 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
                 expressive = align_expressive(neutral, source_neutral, source_expressive,
                                               [a.action_unit.region for a in activations])
         lap("align")
+        target_face = target_ready.result()  # read by now; a bad target fails before the long stages
         model = model_expression(neutral, expressive, activations, reference_face, options, while_registering)
         lap("model")
         if model.texture is not None:
@@ -251,7 +265,21 @@ def transfer(source_neutral: FaceGrid, source_expressive: FaceGrid, target: Face
     return TransferResult(animation, magnitude, model, timings)
 
 
-def _prepare(neutral: NormalisedFace, target: NormalisedFace, activations, options: TransferOptions) -> None:
+def _scan(name: str, scan: Scan) -> FaceGrid:
+    """The face itself, or the scan at its path read and checked."""
+    if isinstance(scan, FaceGrid):
+        return scan
+    face = load_scan(scan)
+    _check_face(name, face)
+    return face
+
+
+def _target_face(target: Scan, reference_landmarks, normalisation: str) -> NormalisedFace:
+    with _naming("target"):
+        return normalise_face(_scan("target", target), reference_landmarks, normalisation)
+
+
+def _prepare(neutral: NormalisedFace, target: Future, activations, options: TransferOptions) -> None:
     """What the transfer needs of the two faces alone before the registration, kept with
     each face: the source's registration grid, then, unless the mirror planes will be
     fitted (they include it), the target's surface. A ValueError is kept too, or raised
@@ -261,7 +289,7 @@ def _prepare(neutral: NormalisedFace, target: NormalisedFace, activations, optio
     if options.method != "published":
         steps.append(lambda: registration_grid(neutral, options.motion))
     if not uses_mirror(activations, options):
-        steps.append(target.surface)
+        steps.append(lambda: target.result().surface())
     _quietly(steps)
 
 
