@@ -214,7 +214,8 @@ CASES = [
                                                                         "v 1 1 0\nv 1e300 1e300 0\n")),
      ValueError, "far.obj"),
     # the expression transfer
-    ("pipeline-face-given-as-a-path", lambda t: _transfer("bs000_N_N_0.bnt"), ValueError, "FaceGrid"),
+    ("pipeline-face-given-as-a-missing-path", lambda t: _transfer("bs000_N_N_0.bnt"), ValueError,
+     "bs000_N_N_0.bnt.: file not found"),
     ("pipeline-face-given-as-none", lambda t: tpscore.transfer(_grids()[0], None, _grids()[2], "12"),
      ValueError, "source_expressive must be a FaceGrid"),
     ("pipeline-options-given-as-text", lambda t: _transfer(options="published"), ValueError, "TransferOptions"),

@@ -97,7 +97,7 @@ def check_image_fits(image: np.ndarray, points: np.ndarray, uv: np.ndarray, vali
     """
     height, width = image.shape[:2]
     coords = np.asarray(uv, dtype=np.float64)[valid]
-    xy = np.asarray(points, dtype=np.float64)[valid][:, :2]
+    xy = np.asarray(points, dtype=np.float64)[..., :2][valid]
     if len(coords) == 0:
         return
     outside = (coords < -1e-6) | (coords > 1.0 + 1e-6)
