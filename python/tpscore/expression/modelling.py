@@ -24,7 +24,7 @@ from ..face.normalise import NormalisedFace
 from ..face.regions import region_weight
 from .action_units import ActionUnit, Activation
 from .alignment import align_rigid, fit_mirror_symmetry
-from .mirror import MirroredMotion
+from .mirror import Coverage, MirroredMotion
 from .options import TransferOptions
 from .registration import DenseMotion, MotionOptions, RegistrationGrid, prepare_registration, register_surfaces
 from .texture import track_texture
@@ -182,7 +182,13 @@ def mirrored(field, face: NormalisedFace):
     except ValueError as error:
         warnings.warn(f"the field is not averaged with its mirror image: {error}", stacklevel=3)
         return field
-    return MirroredMotion(field, mirror, face.grid.points[face.grid.mask])
+    return MirroredMotion(field, mirror, coverage(face))
+
+
+def coverage(face: NormalisedFace) -> Coverage:
+    """How well the face's vertices cover points of its x-y plane (the weights of a
+    mirror average), made once per face."""
+    return face.derived("coverage", lambda f: Coverage(f.grid.points[f.grid.mask]))
 
 
 def model_expression(source_neutral: NormalisedFace, source_expressive: NormalisedFace,

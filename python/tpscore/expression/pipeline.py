@@ -27,8 +27,8 @@ from ..face.pose import check_landmarks
 from ..face.regions import region_boundary
 from .action_units import ActionUnitLibrary, default_library
 from .animation import Animation, animate, magnitude_weights
-from .modelling import (ExpressionModel, align_expressive, mirror_plane, model_expression, registration_grid,
-                        uses_mirror)
+from .modelling import (ExpressionModel, align_expressive, coverage, mirror_plane, model_expression,
+                        registration_grid, uses_mirror)
 from .options import TransferOptions
 
 __all__ = ["TransferResult", "transfer"]
@@ -294,8 +294,9 @@ def _prepare(neutral: NormalisedFace, target: Future, activations, options: Tran
 
 
 def _mirror_planes(faces) -> None:
-    """Each face's mirror plane, kept with the face (see :func:`_prepare`)."""
-    _quietly([lambda face=face: mirror_plane(face) for face in faces])
+    """Each face's mirror plane and coverage, kept with the face (see :func:`_prepare`)."""
+    _quietly([step for face in faces for step in (lambda face=face: mirror_plane(face),
+                                                  lambda face=face: coverage(face))])
 
 
 def _quietly(steps) -> None:
