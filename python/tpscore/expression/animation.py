@@ -11,6 +11,7 @@ magnitude, so a frame of an animation is a scaled add of precomputed fields.
 from __future__ import annotations
 
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Mapping, Sequence
 
@@ -144,7 +145,13 @@ def _carried(model: ExpressionModel, target: NormalisedFace) -> np.ndarray:
         # carried field evens out the correspondence's landmark noise
         carry = mirrored(carry, target)
     grid = target.grid
-    return carry(grid.points.reshape(-1, 3)[grid.mask.ravel()])
+    points = grid.points.reshape(-1, 3)[grid.mask.ravel()]
+    # point by point, so two halves on two threads give the same field (the second
+    # core is free once the source is registered)
+    half = len(points) // 2
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-carry") as second_thread:
+        second_half = second_thread.submit(carry, points[half:])
+        return np.concatenate([carry(points[:half]), second_half.result()])
 
 
 def _spill(upper_weight: np.ndarray, carried: np.ndarray, fraction: float,
