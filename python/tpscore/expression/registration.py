@@ -191,16 +191,21 @@ def _point_to_plane(sample, pairs: _Pairs, prior, floor):
     """The geometry term: each pair pulls along the normal toward its closest point,
     with a Tukey weight of its distance (scale: the robust scale of the distances, at
     least ``floor``), 0 for pairs off the surface. Returns the (m, 6) blocks w n n^T,
-    the (m, 3) right-hand sides, the weighted rms distance and the share of pairs that
-    pull."""
+    the (m, 3) right-hand sides, and each pair's distance along the normal and weight
+    (for :func:`_fit_measures`)."""
     along = np.einsum("ij,ij->i", pairs.moved - pairs.points, pairs.normals)
     rim = off_surface(along, pairs.distances)
     scale = robust_scale(pairs.distances[~rim], floor)
     w = np.where(rim, 0.0, tukey_weights(pairs.distances, TUKEY_FACTOR * scale)) * prior
-    rms = float(np.sqrt(np.average(along ** 2, weights=w))) if w.sum() > 0 else float("nan")
     blocks = w[:, None] * (pairs.normals[:, _UPPER_I] * pairs.normals[:, _UPPER_J])
     to_plane = np.einsum("ij,ij->i", pairs.points - sample, pairs.normals)
-    return blocks, pairs.normals * (w * to_plane)[:, None], rms, float(np.mean(w > 0))
+    return blocks, pairs.normals * (w * to_plane)[:, None], along, w
+
+
+def _fit_measures(along, w) -> tuple[float, float]:
+    """The weighted rms distance of the pairs and the share of them that pull."""
+    rms = float(np.sqrt(np.average(along ** 2, weights=w))) if w.sum() > 0 else float("nan")
+    return rms, float(np.mean(w > 0))
 
 
 def _texture_pull(sample, pairs: _Pairs, targets, prior):
@@ -309,7 +314,7 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     stiffness = np.geomspace(options.stiffness_start, options.stiffness_end, options.iterations)
     floors = np.geomspace(SCALE_FLOOR_START_MM, SCALE_FLOOR_END_MM, options.iterations)
     values = np.zeros((n_nodes, 3))
-    residual_rms, inliers = float("nan"), 0.0
+    along, pair_weights = np.zeros(0), np.zeros(0)
     for iteration, (alpha, floor) in enumerate(zip(stiffness, floors)):
         if texture is not None and iteration > 0 and iteration == options.texture_refine_after:
             # the stiff first iterations have found the large motions: match the texture
@@ -321,10 +326,12 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         moved = sample + basis @ values
         closest = expressive_surface.closest_point(moved)
         pairs = _Pairs(moved, closest.points, closest.distances, surface_normals[closest.triangles])
-        blocks, rhs, residual_rms, inliers = _point_to_plane(sample, pairs, prior, floor)
+        blocks, rhs, along, pair_weights = _point_to_plane(sample, pairs, prior, floor)
         if texture is not None:
             texture_blocks, texture_rhs = _texture_pull(sample, pairs, texture_targets, texture_prior)
             blocks, rhs = blocks + texture_blocks, rhs + texture_rhs
         matrix_values = system.data_term(blocks) + alpha * bending_values + fixed_values
         values = system.solve(matrix_values, (basis.T @ rhs + landmark_rhs).T.ravel()).reshape(3, n_nodes).T.copy()
+    # how well the last iteration's pairs fit, measured once
+    residual_rms, inliers = _fit_measures(along, pair_weights) if len(along) else (float("nan"), 0.0)
     return DenseMotion(lattice, values, residual_rms, inliers, texture)
