@@ -7,6 +7,7 @@ import pytest
 
 import tpscore
 from tpscore import raster
+from tpscore.face.image import bilinear
 from tpscore.reference import raster as reference
 
 
@@ -122,3 +123,28 @@ def test_interpolation_rejects_a_foreign_raster():
         raster.interpolate_pixels(np.zeros(len(pixels)), faces[:10], triangle, barycentric)
     with pytest.raises(ValueError, match="barycentric"):
         raster.interpolate_pixels(np.zeros(len(pixels)), faces, triangle, barycentric[..., :2])
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.uint8])
+@pytest.mark.parametrize("channels", [None, 1, 2, 3])
+def test_bilinear_sampling_matches_the_reference_to_the_bit(dtype, channels):
+    rng = np.random.default_rng(7)
+    shape = (37, 53) if channels is None else (37, 53, channels)
+    image = (rng.uniform(0, 255, shape) if dtype == np.uint8 else rng.normal(size=shape)).astype(dtype)
+    # inside, on the last row and column, and beyond every border (clamped)
+    x = np.concatenate([rng.uniform(-3, 56, 4000), [0.0, 52.0, 51.999999, 60.0, -1.0]])
+    y = np.concatenate([rng.uniform(-3, 40, 4000), [0.0, 36.0, 35.5, -2.0, 50.0]])
+    got = bilinear(image, x, y)
+    expected = reference.bilinear(image, x, y)
+    assert got.dtype == expected.dtype and got.shape == expected.shape
+    assert np.array_equal(got, expected)
+    # (m,) coordinates given as a (k, l) grid keep their shape
+    assert bilinear(image, x[:20].reshape(4, 5), y[:20].reshape(4, 5)).shape == (4, 5) + shape[2:]
+
+
+def test_bilinear_sampling_refuses_what_it_cannot_read():
+    image = np.zeros((4, 5), dtype=np.float32)
+    with pytest.raises(ValueError, match="x and y must be finite"):
+        bilinear(image, [1.0, np.nan], [1.0, 1.0])
+    with pytest.raises(ValueError, match=r"h, w >= 2, got \(1, 5\)"):
+        bilinear(np.zeros((1, 5)), [0.0], [0.0])

@@ -123,4 +123,37 @@ MatrixX interpolate_pixels(const MatrixRef& values, const FacesRef& faces,
     return out;
 }
 
+template <class T>
+void bilinear_sample(const T* image, std::int64_t height, std::int64_t width, std::int64_t channels,
+                     const double* x, const double* y, std::int64_t m, T* out) {
+    const T one = 1;
+    // a few ns a sample: chunks of thousands keep thread start-up cheap
+    parallel_for(static_cast<std::size_t>(m), 8192, [&](std::size_t begin, std::size_t end) {
+        for (std::size_t i = begin; i < end; ++i) {
+            const double xc = std::min(std::max(x[i], 0.0), static_cast<double>(width - 1));
+            const double yc = std::min(std::max(y[i], 0.0), static_cast<double>(height - 1));
+            const std::int64_t x0 = std::min(static_cast<std::int64_t>(std::floor(xc)), width - 2);
+            const std::int64_t y0 = std::min(static_cast<std::int64_t>(std::floor(yc)), height - 2);
+            const T fx = static_cast<T>(xc - static_cast<double>(x0));
+            const T fy = static_cast<T>(yc - static_cast<double>(y0));
+            const T* a = image + (y0 * width + x0) * channels;  // (y0, x0); b, c, d to its right and below
+            const T* b = a + channels;
+            const T* c = a + width * channels;
+            const T* d = c + channels;
+            T* row = out + static_cast<std::int64_t>(i) * channels;
+            for (std::int64_t k = 0; k < channels; ++k) {
+                const T top = a[k] * (one - fx) + b[k] * fx;
+                const T bottom = c[k] * (one - fx) + d[k] * fx;
+                row[k] = top * (one - fy) + bottom * fy;
+            }
+        }
+    });
+}
+
+template void bilinear_sample<float>(const float*, std::int64_t, std::int64_t, std::int64_t, const double*,
+                                     const double*, std::int64_t, float*);
+template void bilinear_sample<double>(const double*, std::int64_t, std::int64_t, std::int64_t, const double*,
+                                      const double*, std::int64_t, double*);
+
 }  // namespace tpscore
+

@@ -1,4 +1,5 @@
-// Orthographic z-buffer rasterisation of triangle meshes.
+// Orthographic z-buffer rasterisation of triangle meshes, and reading images at
+// continuous pixel positions.
 #pragma once
 
 #include <cstdint>
@@ -41,5 +42,16 @@ Raster rasterise(const Eigen::Ref<const Points2>& pixels, const Eigen::Ref<const
 /// entries index into values.
 MatrixX interpolate_pixels(const MatrixRef& values, const FacesRef& faces,
                            const Eigen::Ref<const IndexVector>& triangle, const MatrixRef& barycentric);
+
+/// Bilinear samples of a height x width image with `channels` values per pixel
+/// (row-major, pixel centres at integers) at m continuous positions (x along the
+/// columns, y along the rows), clamped to the image: out holds (m, channels) values.
+/// The arithmetic is NumPy's for tpscore.reference.raster.bilinear step by step, in T
+/// (float or double): fx = T(x - x0), then (a (1 - fx) + b fx) (1 - fy) + (...) fy,
+/// each product rounded on its own (the file is built without fused multiply-adds), so
+/// the two agree to the bit. Preconditions: height, width >= 2; x, y finite.
+template <class T>
+void bilinear_sample(const T* image, std::int64_t height, std::int64_t width, std::int64_t channels,
+                     const double* x, const double* y, std::int64_t m, T* out);
 
 }  // namespace tpscore

@@ -1,4 +1,5 @@
-"""NumPy reference of the z-buffer rasteriser (:func:`tpscore.raster.rasterise`)."""
+"""NumPy reference of the z-buffer rasteriser (:func:`tpscore.raster.rasterise`) and of
+the bilinear image sampler (:func:`tpscore.face.image.bilinear`)."""
 from __future__ import annotations
 
 import numpy as np
@@ -73,3 +74,23 @@ def interpolate_pixels(values, faces, triangle, barycentric):
     corners = faces[triangle[covered]]
     out[covered] = np.einsum("pk,pk...->p...", barycentric[covered], values[corners])
     return out
+
+
+def bilinear(image, x, y):
+    """Same contract as :func:`tpscore.face.image.bilinear`, in NumPy's arithmetic
+    (which the compiled sampler follows to the bit)."""
+    image = np.asarray(image)
+    height, width = image.shape[:2]
+    x = np.clip(np.asarray(x, dtype=np.float64), 0.0, width - 1.0)
+    y = np.clip(np.asarray(y, dtype=np.float64), 0.0, height - 1.0)
+    x0 = np.minimum(np.floor(x).astype(np.int64), width - 2)
+    y0 = np.minimum(np.floor(y).astype(np.int64), height - 2)
+    dtype = np.float64 if image.dtype == np.float64 else np.float32
+    fx = (x - x0).astype(dtype)
+    fy = (y - y0).astype(dtype)
+    if image.ndim == 3:
+        fx, fy = fx[..., None], fy[..., None]
+    top = image[y0, x0].astype(dtype) * (1 - fx) + image[y0, x0 + 1].astype(dtype) * fx
+    bottom = image[y0 + 1, x0].astype(dtype) * (1 - fx) + image[y0 + 1, x0 + 1].astype(dtype) * fx
+    return top * (1 - fy) + bottom * fy
+
