@@ -451,3 +451,35 @@ def test_mirrored_motion_keeps_its_own_motion_where_the_mirror_is_off_the_face()
         MirroredMotion(field, _x_mirror(), covered, reach_mm=0.0)
     with pytest.raises(ValueError, match="finite"):
         MirroredMotion(field, _x_mirror(), np.full((4, 3), np.nan))
+
+
+@pytest.mark.parametrize("m", [1, 2, 7, 2000, 2001])
+def test_registration_terms_match_the_numpy_reference_to_the_bit(m):
+    # the compiled data terms follow the NumPy arithmetic step by step: a registration
+    # gives the same field whichever computes them
+    from tpscore import _core
+    from tpscore.reference import registration as terms
+
+    rng = np.random.default_rng(m)
+    sample = rng.normal(scale=30.0, size=(m, 3))
+    moved = sample + rng.normal(scale=1.0, size=(m, 3))
+    normals = rng.normal(size=(m, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    # closest points below the moved points (on the surface) and off to the side (rims)
+    along = rng.normal(scale=0.8, size=m)
+    sideways = np.cross(normals, rng.normal(size=(m, 3))) * (rng.random(m) < 0.2)[:, None] * 3.0
+    closest = moved - along[:, None] * normals + sideways
+    distances = np.linalg.norm(moved - closest, axis=1)
+    prior = np.where(rng.random(m) < 0.1, 0.0, rng.uniform(0.2, 2.0, m))
+    targets = moved + rng.normal(scale=0.7, size=(m, 3))
+    for floor in (0.5, 5.0):
+        expected = terms.point_to_plane_terms(sample, moved, closest, distances, normals, prior, floor, 3.0)
+        got = [np.empty((m, 6)), np.empty((m, 3)), np.empty(m), np.empty(m)]
+        _core.point_to_plane_terms_into(sample, moved, closest, distances, normals, prior, floor, 3.0, *got)
+        for a, b in zip(got, expected):
+            np.testing.assert_array_equal(a, b)
+        expected = terms.texture_pull_terms(sample, moved, targets, normals, prior, floor, 3.0)
+        got = [np.empty((m, 6)), np.empty((m, 3))]
+        _core.texture_pull_terms_into(sample, moved, targets, normals, prior, floor, 3.0, *got)
+        for a, b in zip(got, expected):
+            np.testing.assert_array_equal(a, b)

@@ -13,6 +13,7 @@ void bind_spatial(nb::module_& m);
 void bind_mesh_ops(nb::module_& m);
 void bind_sparse_solve(nb::module_& m);
 void bind_lattice_gram(nb::module_& m);
+void bind_registration_terms(nb::module_& m);
 void bind_raster(nb::module_& m);
 void bind_skin_sim(nb::module_& m);
 
@@ -32,6 +33,7 @@ NB_MODULE(_core, m) {
     bind_mesh_ops(m);
     bind_sparse_solve(m);
     bind_lattice_gram(m);
+    bind_registration_terms(m);
     bind_raster(m);
     bind_skin_sim(m);
 }

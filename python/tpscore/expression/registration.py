@@ -40,9 +40,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from .. import _core
 from .._validation import check_options
-from ..geometry import off_surface, robust_scale, tukey_weights
-from ..lattice import SYMMETRIC_ENTRIES, BSplineLattice, LatticeSystem
+from ..lattice import BSplineLattice, LatticeSystem
 from ..mesh import face_normals
 from ..spatial import MeshSurface
 from .landmark_pairs import landmark_term
@@ -66,8 +66,6 @@ TEXTURE_SCALE_FLOOR_MM = 0.3
 REST_SHAPE_RATIO = 0.1
 # A tiny ridge keeps nodes without data or bending coupling determined.
 _RIDGE = 1e-8
-_IDENTITY_BLOCK = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])   # I as symmetric entries
-_UPPER_I, _UPPER_J = np.array(SYMMETRIC_ENTRIES).T
 
 
 @dataclass(frozen=True)
@@ -192,14 +190,14 @@ def _point_to_plane(sample, pairs: _Pairs, prior, floor):
     with a Tukey weight of its distance (scale: the robust scale of the distances, at
     least ``floor``), 0 for pairs off the surface. Returns the (m, 6) blocks w n n^T,
     the (m, 3) right-hand sides, and each pair's distance along the normal and weight
-    (for :func:`_fit_measures`)."""
-    along = np.einsum("ij,ij->i", pairs.moved - pairs.points, pairs.normals)
-    rim = off_surface(along, pairs.distances)
-    scale = robust_scale(pairs.distances[~rim], floor)
-    w = np.where(rim, 0.0, tukey_weights(pairs.distances, TUKEY_FACTOR * scale)) * prior
-    blocks = w[:, None] * (pairs.normals[:, _UPPER_I] * pairs.normals[:, _UPPER_J])
-    to_plane = np.einsum("ij,ij->i", pairs.points - sample, pairs.normals)
-    return blocks, pairs.normals * (w * to_plane)[:, None], along, w
+    (for :func:`_fit_measures`). A compiled kernel; NumPy reference:
+    :func:`tpscore.reference.registration.point_to_plane_terms`."""
+    m = len(sample)
+    blocks, rhs, along, weight = np.empty((m, 6)), np.empty((m, 3)), np.empty(m), np.empty(m)
+    _core.point_to_plane_terms_into(*_rows(sample, pairs.moved, pairs.points), _rows(pairs.distances),
+                                    _rows(pairs.normals), _rows(prior), float(floor), TUKEY_FACTOR,
+                                    blocks, rhs, along, weight)
+    return blocks, rhs, along, weight
 
 
 def _fit_measures(along, w) -> tuple[float, float]:
@@ -212,18 +210,19 @@ def _texture_pull(sample, pairs: _Pairs, targets, prior):
     """The texture term: each data point pulls along the expressive surface toward its
     texture match q, the energy w |P (s + u(s) - q)|^2 with P = I - n n^T and w the
     match's weight times a Tukey weight of its tangential residual. Returns the (m, 6)
-    blocks w P and the (m, 3) right-hand sides w P (q - s)."""
-    normals = pairs.normals
-    offset = pairs.moved - targets
-    offset -= np.einsum("ij,ij->i", offset, normals)[:, None] * normals
-    residual = np.linalg.norm(offset, axis=1)
-    used = prior > 0
-    scale = robust_scale(residual[used], TEXTURE_SCALE_FLOOR_MM)
-    w = np.where(used, tukey_weights(residual, TUKEY_FACTOR * scale), 0.0) * prior
-    blocks = w[:, None] * (_IDENTITY_BLOCK - normals[:, _UPPER_I] * normals[:, _UPPER_J])
-    to_target = targets - sample
-    to_target -= np.einsum("ij,ij->i", to_target, normals)[:, None] * normals
-    return blocks, w[:, None] * to_target
+    blocks w P and the (m, 3) right-hand sides w P (q - s). A compiled kernel; NumPy
+    reference: :func:`tpscore.reference.registration.texture_pull_terms`."""
+    m = len(sample)
+    blocks, rhs = np.empty((m, 6)), np.empty((m, 3))
+    _core.texture_pull_terms_into(*_rows(sample, pairs.moved, targets, pairs.normals), _rows(prior),
+                                  TEXTURE_SCALE_FLOOR_MM, TUKEY_FACTOR, blocks, rhs)
+    return blocks, rhs
+
+
+def _rows(*arrays):
+    """C-contiguous float64 arrays, as the kernels take them (no copy when they are)."""
+    rows = [np.ascontiguousarray(a, dtype=np.float64) for a in arrays]
+    return rows if len(rows) > 1 else rows[0]
 
 
 def _texture_samples(texture, sample_mask, prior, options: MotionOptions):
