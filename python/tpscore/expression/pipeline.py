@@ -36,8 +36,9 @@ __all__ = ["TransferResult", "transfer"]
 #: A face as :func:`transfer` takes it: resampled, or the path of a scan to read.
 Scan = FaceGrid | str | os.PathLike
 
-_STAGE_MESSAGES = {"read": "read the source's scans", "normalise": "normalised the faces", "align": "aligned the expressive scan",
-                   "model": "measured the source's motion", "animate": "carried the motion onto the target"}
+_STAGE_MESSAGES = {"read": "read the source's scans", "normalise": "normalised the faces",
+                   "align": "aligned the expressive scan", "model": "measured the source's motion",
+                   "animate": "carried the motion onto the target"}
 
 
 @dataclass
