@@ -53,7 +53,7 @@ bench-skin: install
 # time, so that a rebuild after an edit is incremental.
 SANITIZE_VENV ?= .venv-sanitize
 SANITIZE_TESTS ?= tests/test_rbf.py tests/test_csrbf.py tests/test_spatial.py tests/test_mesh.py \
-	tests/test_sparse.py tests/test_raster.py tests/test_skin_sim.py tests/test_bad_input.py
+	tests/test_sparse.py tests/test_raster.py tests/test_skin_sim.py tests/test_bad_input.py tests/test_motion.py
 SANITIZE_RUN = LD_PRELOAD="$$($(CXX) -print-file-name=libasan.so) $$($(CXX) -print-file-name=libubsan.so)" \
 	ASAN_OPTIONS=detect_leaks=0:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
 	$(SANITIZE_VENV)/bin/python -m pytest -q -p no:cacheprovider
@@ -65,7 +65,6 @@ sanitize:
 	$(SANITIZE_VENV)/bin/python -m pip install --quiet --no-build-isolation ".[test]" \
 		-C cmake.define.TPSCORE_SANITIZE=ON -C cmake.build-type=RelWithDebInfo -C build-dir=build/sanitize
 	$(SANITIZE_RUN) $(SANITIZE_TESTS) -k "not pipeline"
-	$(SANITIZE_RUN) tests/test_motion.py -k lattice
 
 clean:
 	rm -rf build $(VENV) $(SANITIZE_VENV) demo-output .pytest_cache .benchmarks
