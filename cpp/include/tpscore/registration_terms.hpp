@@ -7,7 +7,8 @@
 // built without fused multiply-adds), so the two agree to the bit and a transfer's
 // result does not depend on which ran:
 // - a 3-vector dot product u . v is ((0 + u0 v0) + u2 v2) + u1 v1, the order NumPy's
-//   einsum("ij,ij->i") takes on x86-64 (two-lane SIMD, the third term into lane 0);
+//   einsum("ij,ij->i") takes on x86-64 (two-lane SIMD, the third term into lane 0),
+//   which the registration used before these kernels;
 // - a length is sqrt((x0^2 + x1^2) + x2^2), as numpy.linalg.norm along a row;
 // - a median is the middle value, or the mean (a + b) / 2 of the two middle ones.
 // Blocks hold the entries (0,0) (0,1) (0,2) (1,1) (1,2) (2,2); all arrays are row-major.
