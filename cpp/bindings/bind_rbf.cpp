@@ -52,16 +52,18 @@ void bind_rbf(nb::module_& m) {
         // an ordinary NumPy array (no capsule-owned Eigen storage).
         .def("evaluate_into",
              [](const tpscore::RbfModel& s, PointsIn queries, MatrixOut out) {
-                 tpscore::rbf_evaluate(s, queries, false, as_eigen(out));
+                 return tpscore::rbf_evaluate(s, queries, false, as_eigen(out));
              },
              "queries"_a, "out"_a.noconvert(), nb::call_guard<nb::gil_scoped_release>(),
-             "Write f at (m, 3) queries into out (m, k), C-contiguous float64.")
+             "Write f at (m, 3) queries into out (m, k), C-contiguous float64; returns the first "
+             "row that overflowed, or -1.")
         .def("displacement_into",
              [](const tpscore::RbfModel& s, PointsIn queries, MatrixOut out) {
-                 tpscore::rbf_evaluate(s, queries, true, as_eigen(out));
+                 return tpscore::rbf_evaluate(s, queries, true, as_eigen(out));
              },
              "queries"_a, "out"_a.noconvert(), nb::call_guard<nb::gil_scoped_release>(),
-             "Write f(x) - x at (m, 3) queries into out (m, 3); needs k == 3.")
+             "Write f(x) - x at (m, 3) queries into out (m, 3); needs k == 3; returns the first "
+             "row that overflowed, or -1.")
         .def("evaluation_matrix",
              [](const tpscore::RbfModel& s, PointsIn queries) {
                  return tpscore::rbf_evaluation_matrix(s, queries);

@@ -845,8 +845,8 @@ MatrixX rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool displ
     return out;
 }
 
-void rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool displacement,
-                  Eigen::Ref<MatrixX> out) {
+std::int64_t rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool displacement,
+                          Eigen::Ref<MatrixX> out) {
     const std::int64_t m = queries.rows();
     const std::int64_t n = model.size();
     const std::int64_t k = model.value_dim();
@@ -854,7 +854,7 @@ void rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool displace
         throw std::invalid_argument("rbf_evaluate: the displacement needs 3 values per centre");
     if (out.rows() != m || out.cols() != k)
         throw std::invalid_argument("rbf_evaluate: out must have shape (m, k)");
-    if (m == 0) return;
+    if (m == 0) return -1;
 
     const Eigen::MatrixXd& affine =
         displacement ? model.displacement_affine_normalised : model.affine_normalised;
@@ -873,10 +873,12 @@ void rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool displace
     // a row does not change how it is computed, so results stay thread-independent.
     constexpr std::int64_t kGrain = 4;
     std::atomic<std::int64_t> next_block{0};
+    std::atomic<std::int64_t> first_overflow{m};
 
     auto evaluate_blocks = [&](std::size_t, std::size_t) {
         alignas(64) double qx[kBlock], qy[kBlock], qz[kBlock];
         std::vector<double> acc(static_cast<std::size_t>(k * kBlock));
+        std::int64_t overflow = m;
         for (;;) {
             const std::int64_t begin = next_block.fetch_add(kGrain, std::memory_order_relaxed);
             if (begin >= blocks) break;
@@ -901,12 +903,19 @@ void rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool displace
                 accumulate(model.kernel, e2, qx, qy, qz, model.centre_x.data(), model.centre_y.data(),
                            model.centre_z.data(), n, model.weights_normalised.data(), k, acc.data());
                 for (std::int64_t q = 0; q < count; ++q)
-                    for (std::int64_t c = 0; c < k; ++c) out(first + q, c) = acc[c * kBlock + q];
+                    for (std::int64_t c = 0; c < k; ++c) {
+                        const double value = acc[c * kBlock + q];
+                        out(first + q, c) = value;
+                        if (!std::isfinite(value)) overflow = std::min(overflow, first + q);
+                    }
             }
         }
+        for (std::int64_t seen = first_overflow.load(); overflow < seen;)
+            if (first_overflow.compare_exchange_weak(seen, overflow)) break;
     };
     // One chunk per worker: parallel_for provides the threads, the counter the work.
     parallel_for(static_cast<std::size_t>(workers), 1, evaluate_blocks);
+    return first_overflow.load() < m ? first_overflow.load() : -1;
 }
 
 MatrixX rbf_evaluation_matrix(const RbfModel& model, const PointsRef& queries) {

@@ -92,11 +92,14 @@ def _check_dense_size(n: int) -> None:
 def _check_evaluated(result: np.ndarray, queries: np.ndarray) -> np.ndarray:
     """Refuse a result that overflowed: rather an error than NaN handed back."""
     if not np.isfinite(result).all():
-        row = int(np.flatnonzero(~np.isfinite(result).all(axis=1))[0])
-        raise ValueError(
-            f"points row {row} ({queries[row].tolist()}): the interpolant's value "
-            "overflows float64 there; the point is too far from the centres")
+        _refuse_overflow(int(np.flatnonzero(~np.isfinite(result).all(axis=1))[0]), queries)
     return result
+
+
+def _refuse_overflow(row: int, queries: np.ndarray) -> None:
+    raise ValueError(
+        f"points row {row} ({queries[row].tolist()}): the interpolant's value "
+        "overflows float64 there; the point is too far from the centres")
 
 
 def _read_only(array: np.ndarray) -> np.ndarray:
@@ -309,8 +312,10 @@ class RBF:
         """
         queries = as_points(points, "points")
         result = np.empty((len(queries), self._n_values))
-        self._model.evaluate_into(queries, result)
-        return _check_evaluated(result, queries)
+        overflow = self._model.evaluate_into(queries, result)  # checked as the rows are written
+        if overflow >= 0:
+            _refuse_overflow(overflow, queries)
+        return result
 
     def displacement(self, points) -> np.ndarray:
         """Evaluate the displacement f(x) - x at query points (3 values only).
@@ -334,8 +339,10 @@ class RBF:
                 f"this RBF has {self._n_values}")
         queries = as_points(points, "points")
         result = np.empty((len(queries), 3))
-        self._model.displacement_into(queries, result)
-        return _check_evaluated(result, queries)
+        overflow = self._model.displacement_into(queries, result)
+        if overflow >= 0:
+            _refuse_overflow(overflow, queries)
+        return result
 
     def evaluation_matrix(self, points) -> np.ndarray:
         """The matrix E with ``E @ coefficients == f(points)``.

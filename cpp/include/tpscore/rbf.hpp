@@ -107,8 +107,10 @@ RbfModel rbf_fit(const PointsRef& centres, const MatrixRef& values, RbfKernel ke
 /// writes f(x) - x instead (requires k == 3). Forms no (m, n) temporary; threaded
 /// over blocks of query rows; the result does not depend on the thread count.
 /// The caller allocates `out` (Python passes a NumPy array: see the binding).
-void rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool displacement,
-                  Eigen::Ref<MatrixX> out);
+/// Returns the first row whose value is not finite (it overflowed: a query far from
+/// the centres), or -1; checked as the rows are written, while they are in cache.
+std::int64_t rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool displacement,
+                          Eigen::Ref<MatrixX> out);
 
 /// As above, returning a new (m, k) matrix.
 MatrixX rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool displacement);
