@@ -15,10 +15,10 @@ SimdLevel detect() {
     else if (__builtin_cpu_supports("x86-64-v3"))
         level = SimdLevel::avx2;
 #endif
-    if (const char* requested = std::getenv("TPSCORE_SIMD")) {
-        if (std::strcmp(requested, "baseline") == 0) level = SimdLevel::baseline;
-        if (std::strcmp(requested, "avx2") == 0 && level > SimdLevel::avx2) level = SimdLevel::avx2;
-    }
+    if (simd_level_lowered_to_baseline()) return SimdLevel::baseline;
+    const char* requested = std::getenv("TPSCORE_SIMD");
+    if (requested != nullptr && std::strcmp(requested, "avx2") == 0 && level > SimdLevel::avx2)
+        level = SimdLevel::avx2;
     return level;
 }
 }  // namespace
