@@ -92,14 +92,16 @@ def _check_dense_size(n: int) -> None:
 def _check_evaluated(result: np.ndarray, queries: np.ndarray) -> np.ndarray:
     """Refuse a result that overflowed: rather an error than NaN handed back."""
     if not np.isfinite(result).all():
-        _refuse_overflow(int(np.flatnonzero(~np.isfinite(result).all(axis=1))[0]), queries)
+        _check_overflow(int(np.flatnonzero(~np.isfinite(result).all(axis=1))[0]), queries)
     return result
 
 
-def _refuse_overflow(row: int, queries: np.ndarray) -> None:
-    raise ValueError(
-        f"points row {row} ({queries[row].tolist()}): the interpolant's value "
-        "overflows float64 there; the point is too far from the centres")
+def _check_overflow(row: int, queries: np.ndarray) -> None:
+    """Refuse an evaluation whose row ``row`` overflowed (-1: none did)."""
+    if row >= 0:
+        raise ValueError(
+            f"points row {row} ({queries[row].tolist()}): the interpolant's value "
+            "overflows float64 there; the point is too far from the centres")
 
 
 def _read_only(array: np.ndarray) -> np.ndarray:
@@ -312,9 +314,8 @@ class RBF:
         """
         queries = as_points(points, "points")
         result = np.empty((len(queries), self._n_values))
-        overflow = self._model.evaluate_into(queries, result)  # checked as the rows are written
-        if overflow >= 0:
-            _refuse_overflow(overflow, queries)
+        # the kernel checks each row for overflow as it writes it
+        _check_overflow(self._model.evaluate_into(queries, result), queries)
         return result
 
     def displacement(self, points) -> np.ndarray:
@@ -339,9 +340,7 @@ class RBF:
                 f"this RBF has {self._n_values}")
         queries = as_points(points, "points")
         result = np.empty((len(queries), 3))
-        overflow = self._model.displacement_into(queries, result)
-        if overflow >= 0:
-            _refuse_overflow(overflow, queries)
+        _check_overflow(self._model.displacement_into(queries, result), queries)
         return result
 
     def evaluation_matrix(self, points) -> np.ndarray:
