@@ -48,6 +48,24 @@ def test_blas_runs_on_one_thread_while_a_transfer_runs_and_is_restored_after():
         assert blas_threads() == before
 
 
+def test_side_by_side_runs_the_second_call_on_another_thread_and_returns_both():
+    import threading
+
+    from tpscore._threads import side_by_side
+
+    caller = threading.get_ident()
+    assert side_by_side(lambda: "a", lambda: "b") == ("a", "b")
+    first, second = side_by_side(threading.get_ident, threading.get_ident)
+    assert first == caller and second != caller
+    # an exception of either call reaches the caller, the first call's before the second's
+    with pytest.raises(KeyError):
+        side_by_side(lambda: {}["first"], lambda: 2)
+    with pytest.raises(IndexError):
+        side_by_side(lambda: 1, lambda: [][0])
+    with pytest.raises(KeyError):
+        side_by_side(lambda: {}["first"], lambda: [][0])
+
+
 def test_stub_file_ships_with_the_extension():
     from pathlib import Path
 

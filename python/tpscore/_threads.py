@@ -1,17 +1,19 @@
-"""The thread count of the compiled kernels, and BLAS kept to one thread while a
-transfer runs."""
+"""The thread count of the compiled kernels, two calls run side by side, and BLAS kept
+to one thread while a transfer runs."""
 from __future__ import annotations
 
 import functools
 import numbers
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 
 from threadpoolctl import ThreadpoolController
 
 from . import _core
 
-__all__ = ["num_threads", "set_num_threads", "max_threads", "single_threaded_blas", "blas_on_one_thread"]
+__all__ = ["num_threads", "set_num_threads", "max_threads", "side_by_side", "single_threaded_blas",
+           "blas_on_one_thread"]
 
 
 def num_threads() -> int:
@@ -53,6 +55,15 @@ def set_num_threads(n: int) -> None:
     count = int(n)
     # The core takes a C int; anything beyond the cap means the cap.
     _core.set_num_threads(max(0, min(count, _core.max_threads())))
+
+
+def side_by_side(first, second):
+    """``(first(), second())``, the second called on another thread while this one calls
+    the first: for two independent calls that release the GIL (compiled kernels,
+    OpenCV). Their exceptions are raised here, the first call's before the second's."""
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-side") as other_thread:
+        later = other_thread.submit(second)
+        return first(), later.result()
 
 
 _blas_lock = threading.Lock()

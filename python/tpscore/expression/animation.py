@@ -11,13 +11,13 @@ magnitude, so a frame of an animation is a scaled add of precomputed fields.
 from __future__ import annotations
 
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
 from scipy import ndimage
 
+from .._threads import side_by_side
 from .._validation import as_real
 from ..face.landmarks import landmark_map
 from ..face.normalise import NormalisedFace
@@ -149,9 +149,7 @@ def _carried(model: ExpressionModel, target: NormalisedFace) -> np.ndarray:
     # point by point, so two halves on two threads give the same field (the second
     # core is free once the source is registered)
     half = len(points) // 2
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-carry") as second_thread:
-        second_half = second_thread.submit(carry, points[half:])
-        return np.concatenate([carry(points[:half]), second_half.result()])
+    return np.concatenate(side_by_side(lambda: carry(points[:half]), lambda: carry(points[half:])))
 
 
 def _spill(upper_weight: np.ndarray, carried: np.ndarray, fraction: float,

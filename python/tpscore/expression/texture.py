@@ -33,12 +33,12 @@ from __future__ import annotations
 
 import time
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 import cv2
 
+from .._threads import side_by_side
 from .._validation import as_positive
 from ..face.image import bilinear, grey_levels
 from ..face.grid import FaceGrid
@@ -344,10 +344,8 @@ class _Tracker:
 
         # the two directions on two threads (OpenCV releases the GIL; each flow uses
         # OpenCV's own threads only in parts)
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-flow") as pool:
-            backward = pool.submit(flow, expressive, self.neutral_pattern)
-            forward = flow(self.neutral_pattern, expressive)
-            backward = backward.result()
+        forward, backward = side_by_side(lambda: flow(self.neutral_pattern, expressive),
+                                         lambda: flow(expressive, self.neutral_pattern))
         step = bilinear(forward, self.begin[:, 0], self.begin[:, 1])
         land = self.begin + step
         back = bilinear(backward, land[:, 0], land[:, 1])
@@ -402,11 +400,10 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid,
     pixel_mm = max(pixel_mm, 0.1, extent / 2048.0)
     plane = TexturePlane.covering(valid_points, pixel_mm)
     sigma_px = options.shading_sigma_mm / pixel_mm
-    # the two scans are seen on two threads: rendering and filtering release the GIL
-    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="tpscore-texture") as pool:
-        # the neutral pattern's texture strength is computed beside the expressive view
-        looks = list(pool.map(lambda grid, window: _look(grid, plane, sigma_px, window), (neutral, expressive),
-                              (_STRENGTH_WINDOW_MM / pixel_mm, None)))
+    # the two scans are seen on two threads: rendering and filtering release the GIL;
+    # the neutral pattern's texture strength is computed beside the expressive view
+    looks = side_by_side(lambda: _look(neutral, plane, sigma_px, _STRENGTH_WINDOW_MM / pixel_mm),
+                         lambda: _look(expressive, plane, sigma_px))
     for name, look in zip(("neutral", "expressive"), looks):
         if look.brightness < 8.0:
             warnings.warn(f"the {name} scan's colour image is too dark (median grey {look.brightness:.1f} of "
