@@ -14,6 +14,7 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Callable, Mapping
 
 import numpy as np
@@ -296,8 +297,7 @@ def _prepare(neutral: NormalisedFace, target: Future, activations, options: Tran
 
 def _mirror_planes(faces) -> None:
     """Each face's mirror plane and coverage, kept with the face (see :func:`_prepare`)."""
-    _quietly([step for face in faces for step in (lambda face=face: mirror_plane(face),
-                                                  lambda face=face: coverage(face))])
+    _quietly([partial(step, face) for face in faces for step in (mirror_plane, coverage)])
 
 
 def _quietly(steps) -> None:

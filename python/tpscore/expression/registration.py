@@ -194,9 +194,9 @@ def _point_to_plane(sample, pairs: _Pairs, prior, floor):
     :func:`tpscore.reference.registration.point_to_plane_terms`."""
     m = len(sample)
     blocks, rhs, along, weight = np.empty((m, 6)), np.empty((m, 3)), np.empty(m), np.empty(m)
-    _core.point_to_plane_terms_into(*_rows(sample, pairs.moved, pairs.points), _rows(pairs.distances),
-                                    _rows(pairs.normals), _rows(prior), float(floor), TUKEY_FACTOR,
-                                    blocks, rhs, along, weight)
+    _core.point_to_plane_terms_into(_float64(sample), _float64(pairs.moved), _float64(pairs.points),
+                                    _float64(pairs.distances), _float64(pairs.normals), _float64(prior),
+                                    float(floor), TUKEY_FACTOR, blocks, rhs, along, weight)
     return blocks, rhs, along, weight
 
 
@@ -214,15 +214,15 @@ def _texture_pull(sample, pairs: _Pairs, targets, prior):
     reference: :func:`tpscore.reference.registration.texture_pull_terms`."""
     m = len(sample)
     blocks, rhs = np.empty((m, 6)), np.empty((m, 3))
-    _core.texture_pull_terms_into(*_rows(sample, pairs.moved, targets, pairs.normals), _rows(prior),
-                                  TEXTURE_SCALE_FLOOR_MM, TUKEY_FACTOR, blocks, rhs)
+    _core.texture_pull_terms_into(_float64(sample), _float64(pairs.moved), _float64(targets),
+                                  _float64(pairs.normals), _float64(prior), TEXTURE_SCALE_FLOOR_MM,
+                                  TUKEY_FACTOR, blocks, rhs)
     return blocks, rhs
 
 
-def _rows(*arrays):
-    """C-contiguous float64 arrays, as the kernels take them (no copy when they are)."""
-    rows = [np.ascontiguousarray(a, dtype=np.float64) for a in arrays]
-    return rows if len(rows) > 1 else rows[0]
+def _float64(array) -> np.ndarray:
+    """A C-contiguous float64 array, as the kernels take it (no copy when it is one)."""
+    return np.ascontiguousarray(array, dtype=np.float64)
 
 
 def _texture_samples(texture, sample_mask, prior, options: MotionOptions):
