@@ -12,17 +12,51 @@ def library():
     return default_library()
 
 
-def test_shipped_library_has_the_eight_aus_with_regions(library):
-    assert set(library.codes) == {"1", "2", "4", "12", "14", "15", "17", "20"}
+BOSPHORUS_AUS = {"1", "2", "4", "5", "6", "7", "9", "10", "12", "14", "15", "16", "17", "18", "20", "22", "23",
+                 "24", "25", "26", "27", "28", "34", "43", "44"}
+
+
+def test_shipped_library_has_every_bosphorus_au_with_its_region(library):
+    assert set(library.codes) == BOSPHORUS_AUS
     for code in ("1", "2", "4"):
         assert library[code].region == "upper"
-    for code in ("12", "14", "15", "17", "20"):
+    for code in ("12", "14", "15", "16", "17", "18", "20", "22", "23", "24", "25", "26", "27", "28", "34"):
         assert library[code].region == "lower"
+    for code in ("5", "7", "43", "44"):
+        assert library[code].region == "eyes"
+    assert library["6"].region == "eyes_cheeks"
+    assert library["9"].region == library["10"].region == "nose_upper_lip"
     for au in library.action_units.values():
+        assert au.name and au.muscle, au.code  # the FACS name and its muscles
         kinds = {p.kind for p in au.control_points}
         assert "muscle" in kinds, au.code
         sides = [p.side for p in au.control_points]
         assert sides.count("left") == sides.count("right"), au.code  # mirrored pairs
+
+
+def test_named_regions_cover_where_their_muscles_act(library):
+    landmarks = load_average_face().landmarks
+    eyes = library.regions["eyes"]
+    lid = library["43"].positions_xy(landmarks)
+    assert (eyes.weight(np.column_stack([lid, np.zeros(len(lid))]), landmarks) == 1).all()
+    chin = landmarks[21:22]
+    assert eyes.weight(chin, landmarks)[0] == 0
+    nose = library.regions["nose_upper_lip"]
+    inside = landmarks[[13, 16, 10, 11]]  # nose tip, upper lip, the nose's saddles
+    assert (nose.weight(inside, landmarks) == 1).all()
+    assert nose.weight(landmarks[[20, 21]], landmarks).max() < 1  # lower lip and chin: outside or on the edge
+    # weights fall smoothly: a point just outside a polygon has a weight between 0 and 1
+    corner = eyes.corners(landmarks)[0]
+    outside = corner.mean(axis=0) + 1.02 * (corner[0] - corner.mean(axis=0))
+    assert 0 < eyes.weight(np.append(outside, 0.0)[None], landmarks)[0] <= 1
+
+
+def test_emotions_follow_table_3_3(library):
+    expected = {"surprise": {"1", "2", "5", "26"}, "fear": {"1", "2", "4", "5", "20", "27"},
+                "happiness": {"6", "12"}, "sadness": {"1", "4", "15"}, "disgust": {"9", "17"},
+                "anger": {"4", "5", "7", "23", "25"}}
+    for name, codes in expected.items():
+        assert set(library.emotions[name]) == codes, name
 
 
 def test_control_points_sit_where_the_anatomy_says(library):
@@ -43,7 +77,16 @@ def test_parse_specs(library):
     assert [a.label for a in library.parse("1,4,15")] == ["AU1", "AU4", "AU15"]
     acts = library.parse("12:0.5 + 12:0.25")
     assert len(acts) == 1 and acts[0].weight == pytest.approx(0.75)
-    assert {a.label for a in library.parse("sadness")} == {"AU1", "AU4", "AU15"}
+    sadness = library.parse("sadness")
+    assert [a.label for a in sadness] == ["sadness"] and sadness[0].whole and sadness[0].bilateral
+    assert {a.label for a in library.recipe(sadness[0])} == {"AU1", "AU4", "AU15"}
+    whole = library.parse("all:0.5")
+    assert [a.label for a in whole] == ["all"] and whole[0].weight == 0.5 and not whole[0].bilateral
+    with pytest.raises(ValueError, match="no recipe"):
+        library.recipe(whole[0])
+    with pytest.raises(ValueError, match="whole expression"):
+        library.parse("happiness,12")
+    assert [a.label for a in library.parse("43")] == ["AU43"]
     assert library.parse({"20": 0.3})[0].weight == pytest.approx(0.3)
     with pytest.raises(ValueError, match="unknown action unit '99'"):
         library.parse("99")
@@ -64,7 +107,7 @@ def test_one_sided_weights(library):
 
 def test_user_defined_au_round_trips_through_json(tmp_path, library):
     custom = ActionUnit(
-        code="9", name="Nose wrinkler", region="lower", muscle="levator labii superioris alaeque nasi",
+        code="11", name="Nasolabial deepener", region="lower", muscle="zygomaticus minor",
         control_points=(ControlPoint(name="ala_left", kind="muscle", side="left", at={"Left nose peak": 1.0},
                                      offset_mm=(0.0, 3.0)),
                         ControlPoint(name="ala_right", kind="muscle", side="right", at={"Right nose peak": 1.0},
@@ -73,8 +116,10 @@ def test_user_defined_au_round_trips_through_json(tmp_path, library):
     path = tmp_path / "aus.json"
     library.to_json(path)
     loaded = ActionUnitLibrary.from_json(path)
-    assert loaded["9"].control_points == custom.control_points
-    assert [a.label for a in loaded.parse("9R")] == ["AU9R"]
+    assert loaded["11"].control_points == custom.control_points
+    assert [a.label for a in loaded.parse("11R")] == ["AU11R"]
+    assert loaded.regions.keys() == library.regions.keys()
+    assert loaded["43"].region == "eyes"
 
 
 @pytest.mark.parametrize("bad, message", [

@@ -40,10 +40,11 @@ def _fake_layout(root: Path, subjects, codes) -> Path:
 
 
 def test_transfer_jobs_choose_pairs_and_codes(tmp_path):
-    root = _fake_layout(tmp_path, range(4), ["N_N_0", "LFAU_12_0", "UFAU_1_0", "LFAU_9_0", "E_SADNESS_0", "YR_R90_0"])
+    root = _fake_layout(tmp_path, range(4), ["N_N_0", "LFAU_12_0", "UFAU_1_0", "LFAU_9_0", "E_SADNESS_0", "YR_R90_0",
+                                             "CAU_A22A25_0", "UFAU_43_0", "O_GLASSES_0"])
     jobs = batch.transfer_jobs(root, pairs="next-1")
-    # AU9 is not in the library and YR_R90 is a pose: neither is transferred
-    assert {j.action_units for j in jobs} == {"12", "1", "sadness"}
+    # every AU, combination and emotion code maps to its request; poses and occlusions are no expression
+    assert {j.action_units for j in jobs} == {"12", "1", "9", "sadness", "22+25", "43"}
     pairs = {(j.name[:5], j.name.split("__")[1]) for j in jobs}
     assert pairs == {("bs000", "bs001"), ("bs001", "bs002"), ("bs002", "bs003"), ("bs003", "bs000")}
     job = next(j for j in jobs if j.name == "bs003_LFAU_12_0__bs000")

@@ -108,7 +108,7 @@ def test_demo_writes_meshes_pictures_and_pages(tmp_path):
     run = subprocess.run([sys.executable, "-m", "tpscore", "demo", "--out", str(out)],
                          capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr
-    for stem in ("au12", "au4", "sadness"):
+    for stem in ("au12", "au4", "sadness", "surprise"):
         for name in ("npz", "obj", "mtl", "ply"):
             assert (out / f"target_{stem}.{name}").stat().st_size > 50
         assert (out / f"target_{stem}_texture.png").stat().st_size > 1000
@@ -122,6 +122,11 @@ def test_demo_writes_meshes_pictures_and_pages(tmp_path):
     for name in ("source_neutral", "source_au12", "target_neutral"):
         for suffix in ("bnt", "lm3", "png"):
             assert (out / "scans" / f"{name}.{suffix}").is_file()
+    # the open-mouthed surprise is an opening in the target's mesh: fewer triangles than
+    # the neutral grid has, none of them joining the lips
+    opened = trimesh.load(str(out / "target_surprise.ply"), process=False)
+    closed = trimesh.load(str(out / "target_au4.ply"), process=False)
+    assert len(opened.vertices) == len(closed.vertices) and len(opened.faces) < len(closed.faces) - 20
     # the physical skin: a fitted scan smiles, frowns and opens its jaw
     for stem in ("smile", "frown", "jaw"):
         assert (out / f"skin_{stem}.png").stat().st_size > 1000

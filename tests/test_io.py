@@ -205,6 +205,23 @@ def test_lm3_star_comment_header_and_crlf(tmp_path):
     assert np.isnan(landmarks[:13]).all()
 
 
+def test_lm3_with_the_ear_lobes_keeps_the_22(tmp_path):
+    # the database labels up to 24 landmarks: the two ear lobes beyond the 22
+    pairs = [("Left ear lobe", "70 -10 20"), ("Nose tip", "1 2 3"), ("Right ear lobe", "-70 -10 20"),
+             ("Chin middle", "0 -60 10")]
+    path = tmp_path / "ears.lm3"
+    path.write_text(lm3_text(4, pairs))
+    landmarks, names = read_lm3(path, return_names=True)
+    assert names == ["Nose tip", "Chin middle"]
+    assert landmarks[13].tolist() == [1.0, 2.0, 3.0] and np.isfinite(landmarks).all(axis=1).sum() == 2
+    full = [(name, f"{i} 0 0") for i, name in enumerate(LANDMARK_NAMES)] + pairs[::2]
+    path.write_text(lm3_text(24, full))
+    assert np.isfinite(read_lm3(path)).all()
+    path.write_text(lm3_text(2, [pairs[0], pairs[0]]))
+    with pytest.raises(ValueError, match="duplicate landmark 'Left ear lobe'"):
+        read_lm3(path)
+
+
 def lm3_text(count, pairs):
     body = "\n".join(f"{name}\n{coords}" for name, coords in pairs)
     return f"3D landmark points\n\n{count} landmarks:\n{body}\n"

@@ -42,7 +42,8 @@ OUTPUT = REPOSITORY / "python" / "tpscore" / "data" / "ict_demo_faces.npz"
 LICENCE_OUTPUT = REPOSITORY / "python" / "tpscore" / "data" / "ict_facekit_LICENSE.txt"
 
 #: AU -> ICT expression shapes, as the benchmark's scan generator maps them (one shape
-#: per side for the two-sided AUs; AU17 has one shape for both sides).
+#: per side for the two-sided AUs; AU17 and AU26 have one shape for both sides). AU5
+#: and AU26 make the demo's open-mouthed surprise; AU43 closes the eyes (the tests' lids).
 AU_SHAPES = {
     "1": ("browInnerUp_L", "browInnerUp_R"),
     "2": ("browOuterUp_L", "browOuterUp_R"),
@@ -52,6 +53,9 @@ AU_SHAPES = {
     "15": ("mouthFrown_L", "mouthFrown_R"),
     "17": ("mouthShrugLower",),
     "20": ("mouthStretch_L", "mouthStretch_R"),
+    "5": ("eyeWide_L", "eyeWide_R"),
+    "26": ("jawOpen",),
+    "43": ("eyeBlink_L", "eyeBlink_R"),
 }
 
 QUANTUM_MM = 0.01

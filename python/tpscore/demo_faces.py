@@ -42,7 +42,7 @@ from .spatial import KDTree, MeshSurface
 __all__ = ["DemoFaceModel", "DemoScan", "load_demo_model", "make_demo_scan", "DEMO_AUS"]
 
 #: The action units the extract holds expression shapes for.
-DEMO_AUS: tuple[str, ...] = ("1", "2", "4", "12", "14", "15", "17", "20")
+DEMO_AUS: tuple[str, ...] = ("1", "2", "4", "5", "12", "14", "15", "17", "20", "26", "43")
 
 _DATA_FILE = "ict_demo_faces.npz"
 
@@ -445,7 +445,7 @@ def make_demo_scan(person: int, expression=None, *, spacing_mm: float = 0.7, tex
         0 to ``load_demo_model().n_people - 1``.
     expression : None, str or dict
         AU weights (``{"12": 1.0}``, ``{"1": 1, "4": 0.5, "15": 1}``, ``"12L"``); the
-        AUs of :data:`DEMO_AUS`, optionally one-sided (not AU17).
+        AUs of :data:`DEMO_AUS`, optionally one-sided (not AU17 or AU26).
     spacing_mm : float
         Depth-grid spacing (0.3 to 3 mm).
     texture_scale : int

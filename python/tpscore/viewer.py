@@ -166,7 +166,7 @@ def write_result_html(path, result, *, title: str | None = None) -> None:
     weight per AU, it scales all the weights together from 0 to 1.
     """
     grid = result.target.grid
-    mesh = grid.mesh()
+    mesh = result.mesh()  # an opened mouth is an opening in the mesh
     index = mesh.grid_index
     neutral = result.neutral.reshape(-1, 3)[index]
     labels = "+".join(result.animation.labels)

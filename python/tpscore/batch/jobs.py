@@ -38,8 +38,10 @@ __all__ = ["Job", "TransferJob", "AdaptJob", "transfer_jobs", "adapt_jobs", "rea
 NEUTRAL_CODE = "N_N_0"
 
 # Bosphorus expression codes: action units of the lower face, the upper face or both
-# (LFAU_12_0, UFAU_1_0, CAU_...), and emotions (E_HAPPY_0).
+# (LFAU_12_0, UFAU_1_0), combinations of action units (CAU_A22A25_0: AU22 + AU25; also
+# read as CAU_22+25_0), and emotions (E_HAPPY_0).
 _AU_CODE = re.compile(r"^(?:LF|UF|C)AU_([0-9]+[LR]?)_0$")
+_COMBINATION_CODE = re.compile(r"^CAU_((?:A[0-9]+[LR]?)+|[0-9]+[LR]?(?:\+[0-9]+[LR]?)+)_0$")
 _EMOTION_CODE = re.compile(r"^E_([A-Z]+)_0$")
 _EMOTIONS = {"HAPPY": "happiness", "SADNESS": "sadness", "SURPRISE": "surprise", "FEAR": "fear",
              "ANGER": "anger", "DISGUST": "disgust"}
@@ -337,11 +339,16 @@ class AdaptJob(Job):
 
 def code_label(code: str) -> str | None:
     """The action-unit request a Bosphorus expression code shows (``"LFAU_12_0"`` ->
-    ``"12"``, ``"E_HAPPY_0"`` -> ``"happiness"``), or None for codes that are no AU or
-    emotion (neutral, poses, occlusions)."""
+    ``"12"``, ``"CAU_A22A25_0"`` -> ``"22+25"``, ``"E_HAPPY_0"`` -> ``"happiness"``, a
+    whole expression), or None for codes that are no AU or emotion (neutral, poses,
+    occlusions)."""
     match = _AU_CODE.match(code)
     if match:
         return match.group(1)
+    match = _COMBINATION_CODE.match(code)
+    if match:
+        parts = match.group(1)
+        return "+".join(re.findall(r"[0-9]+[LR]?", parts))
     match = _EMOTION_CODE.match(code)
     if match:
         return _EMOTIONS.get(match.group(1))
@@ -471,7 +478,7 @@ def transfer_jobs(folder, *, action_units=None, sources=None, targets=None, pair
                 try:
                     _library().parse(label)
                 except ValueError:
-                    continue  # an AU the library does not have (AU9, AU26, ...)
+                    continue  # an AU the library does not have (a user's own library may lack some)
             shown.add(label)
             for t in targets_of.get(s, ()):
                 name = f"bs{s:03d}_{code}__bs{t:03d}" + (f"_m{magnitude:g}" if magnitude != 1.0 else "")

@@ -36,12 +36,15 @@ from .progress import StepLog
 
 __all__ = ["run_demo", "run_skin_demo", "DEMO_EXPRESSIONS", "SKIN_DEMO_EXPRESSIONS", "SOURCE_PERSON", "TARGET_PERSON"]
 
-#: (file stem, AU weights the source person shows, what is transferred). Sadness is the
-#: prototype the AU library knows (AU1 + AU4 + AU15); the source frowns at half strength.
+#: (file stem, AU weights the source person shows, what is transferred). Sadness and
+#: surprise are whole emotions: all the motion the source's scan shows is carried (the
+#: source frowns at half strength in its sadness); surprise opens the mouth (the jaw
+#: drops, AU26 at 0.4), which the target's mesh shows as an opening.
 DEMO_EXPRESSIONS = (
     ("au12", {"12": 1.0}, "12"),
     ("au4", {"4": 1.0}, "4"),
     ("sadness", {"1": 1.0, "4": 0.5, "15": 1.0}, "sadness"),
+    ("surprise", {"1": 1.0, "2": 1.0, "5": 1.0, "26": 0.4}, "surprise"),
 )
 SOURCE_PERSON, TARGET_PERSON = 0, 1
 

@@ -21,7 +21,7 @@ def write_result_mesh(result, path) -> list[Path]:
     ``_texture.png`` when the target has one) or ``.ply`` (with vertex colours); returns
     the files written."""
     path = Path(path)
-    mesh = result.target.grid.with_points(result.vertices).mesh()
+    mesh = result.mesh()  # an opened mouth is an opening in the mesh
     if path.suffix.lower() == ".obj" and result.image is not None:
         return list(io.write_textured_obj(path, mesh.vertices, mesh.faces, mesh.uv, result.image))
     if result.colours is not None:
@@ -36,12 +36,18 @@ def write_result_mesh(result, path) -> list[Path]:
     return [path]
 
 
-def _render(points, mask, grid, camera=None) -> np.ndarray:
-    """A face in its own colours where it has them, else clay."""
+def _render(points, mask, grid, camera=None, triangles=None) -> np.ndarray:
+    """A face in its own colours where it has them, else clay; ``triangles`` (flat grid
+    indices) replace the grid's own (a result's, which leave an opened mouth open)."""
     options = dict(camera=camera) if camera is not None else dict(width=PANEL_SIZE, height=PANEL_SIZE)
     if grid.image is not None:
         options.update(texture=grid.image, uv=grid.uv)
-    return render.render_grid(points, mask, **options)
+    if triangles is None:
+        return render.render_grid(points, mask, **options)
+    vertices = np.where(np.asarray(mask)[..., None], points, np.nan).reshape(-1, 3)
+    if "uv" in options:
+        options["uv"] = np.asarray(options["uv"]).reshape(-1, 2)
+    return render.render_mesh(vertices, triangles, **options)
 
 
 def transfer_picture(grids, result, *, errors=None, error_vmax: float | None = None,
@@ -73,10 +79,10 @@ def transfer_picture(grids, result, *, errors=None, error_vmax: float | None = N
     camera = render.fit_camera([result.neutral[result.mask], result.vertices[result.mask]],
                                width=PANEL_SIZE, height=PANEL_SIZE)
     panels.append(_render(result.neutral, result.mask, result.target.grid, camera))
-    panels.append(_render(result.vertices, result.mask, result.target.grid, camera))
+    panels.append(_render(result.vertices, result.mask, result.target.grid, camera, result.triangles()))
     keys += ["target", "result"]
     if errors is not None:
-        mesh = result.target.grid.with_points(result.vertices).mesh()
+        mesh = result.mesh()
         error_camera = render.fit_camera([mesh.vertices], width=PANEL_SIZE - render.COLORBAR_WIDTH,
                                          height=PANEL_SIZE)
         panels.append(render.error_heatmap(mesh.vertices, mesh.faces,
@@ -94,10 +100,11 @@ def write_sweep_gif(result, path, *, frames: int = 18, fps: float = 12.0) -> Non
     camera = render.fit_camera([result.neutral[result.mask], result.vertices[result.mask]],
                                width=PANEL_SIZE, height=PANEL_SIZE)
     grid = result.target.grid
+    triangles = result.triangles()
     pictures = []
     for fraction in magnitudes:
         points = result.neutral + fraction * result.field_in_scan()
-        pictures.append(_render(points, result.mask, grid, camera))
+        pictures.append(_render(points, result.mask, grid, camera, triangles))
     render.save_gif(path, pictures, fps=fps)
 
 

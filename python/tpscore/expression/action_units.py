@@ -1,9 +1,14 @@
-"""The action-unit library: FACS action units as control points on the reference face.
+"""The action-unit library: FACS action units as control points on the reference face,
+the regions where they act, and the emotions.
 
 Each action unit (AU) has muscle control points (along the fibres of the muscle that
 makes it) and wrinkle control points (where the skin bulges or folds), a region of the
-face (upper or lower) and a side for every point (left, right or centre), so that an
-AU can be animated on one side only (``12L``). The library is data:
+face (the upper or lower face, or a named region finer than those: the eyelids, the
+nose and upper lip, ...) and a side for every point (left, right or centre), so that
+an AU can be animated on one side only (``12L``). An emotion (``"happiness"``) and
+``"all"`` are whole expressions (:class:`WholeExpression`): the whole motion a source's
+scan shows, over the whole face; an emotion also has its recipe of AUs, which the
+method as published animates. The library is data:
 ``tpscore/data/action_units.json`` (documented in the README); users load their own
 with :meth:`ActionUnitLibrary.from_json` or add AUs with :meth:`ActionUnitLibrary.add`.
 
@@ -25,18 +30,27 @@ import numpy as np
 from .._files import atomic_write
 from .._validation import as_real
 from ..face.landmarks import AnchoredPoint
+from ..face.regions import HALVES, Region
 
 __all__ = [
     "ControlPoint",
     "ActionUnit",
+    "WholeExpression",
     "Activation",
     "ActionUnitLibrary",
     "default_library",
     "REGIONS",
+    "WHOLE_FACE",
+    "ALL",
     "MAX_WEIGHT",
 ]
 
-REGIONS = ("upper", "lower")
+#: The region of a whole expression: every part of the face the scans show.
+WHOLE_FACE = "face"
+#: The request for the whole motion of any expressive scan.
+ALL = "all"
+#: The regions every library has; a library adds named ones (:class:`tpscore.face.regions.Region`).
+REGIONS = (*HALVES, WHOLE_FACE)
 
 #: The largest weight of an AU, and the largest transfer magnitude, in absolute value:
 #: twice the modelled expression. [0, 1] is the expression's own range; values outside
@@ -73,8 +87,8 @@ class ActionUnit:
     def __post_init__(self):
         if not re.fullmatch(r"[0-9A-Za-z_]+", self.code) or self.code[-1] in "LR":
             raise ValueError(f"AU code {self.code!r} must be alphanumeric and not end in L or R")
-        if self.region not in REGIONS:
-            raise ValueError(f"AU {self.code}: region must be one of {REGIONS}, got {self.region!r}")
+        if not isinstance(self.region, str) or not self.region:
+            raise ValueError(f"AU {self.code}: region must be a region's name, got {self.region!r}")
         if len(self.control_points) < 1:
             raise ValueError(f"AU {self.code}: needs at least one control point")
         names = [p.name for p in self.control_points]
@@ -128,24 +142,75 @@ class ActionUnit:
 
 
 @dataclass(frozen=True)
-class Activation:
-    """An AU at a weight, on both sides (side None) or one side ('L' or 'R')."""
+class WholeExpression:
+    """A whole expression: all the motion the source's expressive scan shows, over the
+    whole face (``region`` is :data:`WHOLE_FACE`). ``name`` is an emotion's
+    (``"happiness"``) or :data:`ALL`; ``recipe`` holds an emotion's AUs and weights
+    (what the method as published animates), None for ``"all"``."""
 
-    action_unit: ActionUnit
+    name: str
+    recipe: Mapping[str, float] | None = None
+
+    @property
+    def region(self) -> str:
+        return WHOLE_FACE
+
+    @property
+    def code(self) -> str:
+        return self.name
+
+    @property
+    def control_points(self) -> tuple:
+        return ()
+
+    @property
+    def names(self) -> list[str]:
+        return []
+
+    @property
+    def bilateral(self) -> bool:
+        """Whether it moves both sides alike: ``"all"`` is not known to; an emotion is
+        when its recipe has no one-sided AU."""
+        return self.recipe is not None and not any(code.strip().upper()[-1:] in ("L", "R") for code in self.recipe)
+
+    def side_weights(self, side: str | None) -> np.ndarray:
+        return np.ones(0)
+
+
+@dataclass(frozen=True)
+class Activation:
+    """An AU (or a whole expression) at a weight, on both sides (side None) or one side
+    ('L' or 'R')."""
+
+    action_unit: ActionUnit | WholeExpression
     side: str | None = None
     weight: float = 1.0
 
     @property
+    def whole(self) -> bool:
+        """Whether it is a whole expression (:class:`WholeExpression`)."""
+        return isinstance(self.action_unit, WholeExpression)
+
+    @property
+    def bilateral(self) -> bool:
+        """Whether it moves both sides of the face alike."""
+        return self.action_unit.bilateral if self.whole else self.side is None
+
+    @property
     def label(self) -> str:
+        if self.whole:
+            return self.action_unit.name
         return f"AU{self.action_unit.code}{self.side or ''}"
 
 
 @dataclass
 class ActionUnitLibrary:
-    """A set of action units and the emotion prototypes built from them."""
+    """A set of action units, the named regions they act in and the emotion
+    prototypes built from them."""
 
     action_units: dict[str, ActionUnit] = field(default_factory=dict)
     emotions: dict[str, dict[str, float]] = field(default_factory=dict)
+    regions: dict[str, Region] = field(default_factory=dict)
 
     @classmethod
     def from_json(cls, path) -> "ActionUnitLibrary":
@@ -162,6 +227,8 @@ class ActionUnitLibrary:
         if not isinstance(data, Mapping) or "action_units" not in data:
             raise ValueError(f"{source}: expected an object with an 'action_units' list")
         library = cls()
+        for entry in data.get("regions", []):
+            library.add_region(Region.from_dict(entry))
         for entry in data["action_units"]:
             library.add(ActionUnit.from_dict(entry))
         for name, recipe in data.get("emotions", {}).items():
@@ -170,6 +237,7 @@ class ActionUnitLibrary:
 
     def to_json(self, path) -> None:
         doc = {"format": "tpscore-action-units", "version": 1,
+               "regions": [region.to_dict() for region in self.regions.values()],
                "action_units": [au.to_dict() for au in self.action_units.values()],
                "emotions": self.emotions}
         atomic_write(path, json.dumps(doc, indent=1).encode("utf-8"))
@@ -177,7 +245,18 @@ class ActionUnitLibrary:
     def add(self, action_unit: ActionUnit, *, replace: bool = False) -> None:
         if action_unit.code in self.action_units and not replace:
             raise ValueError(f"AU {action_unit.code} is already in the library (pass replace=True)")
+        if action_unit.region not in REGIONS and action_unit.region not in self.regions:
+            raise ValueError(f"AU {action_unit.code}: unknown region {action_unit.region!r}; known: "
+                             f"{', '.join([*REGIONS, *self.regions])} (add_region adds one)")
         self.action_units[action_unit.code] = action_unit
+
+    def add_region(self, region: Region, *, replace: bool = False) -> None:
+        """Add a named region (:class:`tpscore.face.regions.Region`) AUs can act in."""
+        if region.name in REGIONS:
+            raise ValueError(f"region {region.name!r} is built in; choose another name")
+        if region.name in self.regions and not replace:
+            raise ValueError(f"region {region.name!r} is already in the library (pass replace=True)")
+        self.regions[region.name] = region
 
     def add_emotion(self, name: str, recipe: Mapping[str, float]) -> None:
         """Register an emotion as weights over AU codes (with optional side, e.g. '12L')."""
@@ -216,9 +295,11 @@ class ActionUnitLibrary:
         """Parse an AU request into activations.
 
         Accepts ``"12"``, ``"12L"``, ``"AU12R"``, several joined by ``,`` or ``+``
-        (``"1,4,15"``), a weight after a colon (``"12:0.5"``), an emotion name
-        (``"sadness"``), a mapping ``{"12": 1.0}`` or a list of such tokens.
-        Repeated AUs on the same side add their weights.
+        (``"1,4,15"``), a weight after a colon (``"12:0.5"``), a mapping ``{"12": 1.0}``
+        or a list of such tokens; or a whole expression: an emotion name
+        (``"sadness"``) or ``"all"``, with an optional weight, alone (a whole
+        expression already holds every AU its scan shows). Repeated AUs on the same side
+        add their weights.
         """
         def weight_of(code, value) -> float:
             return as_real(value, f"action_units: the weight of {code!r}", low=-MAX_WEIGHT, high=MAX_WEIGHT)
@@ -250,13 +331,18 @@ class ActionUnitLibrary:
                     tokens.append((code, weight_of(code, number)))
         if not tokens:
             raise ValueError("no action unit given")
+        wholes = [(code.strip().lower(), weight) for code, weight in tokens
+                  if code.strip().lower() in self.emotions or code.strip().lower() == ALL]
+        if wholes:
+            if len(tokens) > 1:
+                raise ValueError(
+                    f"action_units: {wholes[0][0]!r} is a whole expression (all the motion its scan shows) and "
+                    "cannot be combined with other AUs or expressions in one transfer")
+            name, weight = wholes[0]
+            recipe = None if name == ALL else dict(self.emotions[name])
+            return [Activation(WholeExpression(name, recipe), None, weight)]
         merged: dict[tuple[str, str | None], float] = {}
         for code, weight in tokens:
-            if code.lower() in self.emotions:
-                for sub, w in self.emotions[code.lower()].items():
-                    key = self._split_code(sub)
-                    merged[key] = merged.get(key, 0.0) + w * weight
-                continue
             key = self._split_code(code)
             merged[key] = merged.get(key, 0.0) + weight
         for (code, side), weight in merged.items():
@@ -265,8 +351,30 @@ class ActionUnitLibrary:
                                  f"outside [-{MAX_WEIGHT:g}, {MAX_WEIGHT:g}]")
         return [Activation(self.action_units[c], s, w) for (c, s), w in merged.items()]
 
+    def recipe(self, activation: Activation) -> list[Activation]:
+        """The AUs an activation stands for: itself for an AU, its recipe (scaled by its
+        weight) for an emotion. ``"all"`` has no recipe: ValueError."""
+        if not activation.whole:
+            return [activation]
+        if activation.action_unit.recipe is None:
+            raise ValueError(f"{activation.label!r} carries the whole measured motion and has no recipe of action "
+                             "units (the method as published needs AUs or an emotion)")
+        return self.parse({code: weight * activation.weight for code, weight in activation.action_unit.recipe.items()})
+
+    def region(self, name: str):
+        """The named region (a :class:`tpscore.face.regions.Region`), or None for a half
+        of the face or the whole face."""
+        if name in REGIONS:
+            return None
+        try:
+            return self.regions[name]
+        except KeyError:
+            raise ValueError(f"unknown region {name!r}; known: {', '.join([*REGIONS, *self.regions])}") from None
+
 
 def default_library() -> ActionUnitLibrary:
-    """The shipped library: AU1, 2, 4 (upper face), AU12, 14, 15, 17, 20 (lower face)."""
+    """The shipped library: every action unit of the Bosphorus database (AUs 1, 2, 4, 5,
+    6, 7, 9, 10, 12, 14, 15, 16, 17, 18, 20, 22, 23, 24, 25, 26, 27, 28, 34, 43, 44),
+    the regions they act in and the six emotions (and contempt)."""
     with resources.files("tpscore").joinpath("data/action_units.json").open("r", encoding="utf-8") as fh:
         return ActionUnitLibrary.from_dict(json.load(fh), source="action_units.json")

@@ -18,6 +18,15 @@ a rotation and a translation only:
 
 The result maps the expressive scan's frame onto the neutral scan's frame.
 
+Which part of the face is still depends on the expression. For action units it is
+the part outside their regions (a smile does not move the forehead). A whole
+expression (an emotion, ``"all"``) may move every region; then the ICP leans on the
+parts the skull holds most firmly (:func:`stable_weight`: the nose's bridge, the upper
+forehead and the temples), and once the motion is registered the rigid part that is
+left in it is found from the dense correspondences over those parts and taken out
+(:func:`residual_rigid_motion`): unlike the surfaces' distances, the correspondences
+also see the skin that slid along the surface.
+
 The same fit finds a face's plane of symmetry (:func:`fit_mirror_symmetry`): the scan
 mirrored (left and right landmarks swapped) is aligned rigidly onto itself, and the
 reflection followed by that alignment is the face's mirror map.
@@ -29,13 +38,16 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..face.landmarks import MIRROR_LANDMARK
+from ..face.landmarks import MIRROR_LANDMARK, landmark_index
 from ..face.normalise import FrameTransform, similarity_transform
 from ..face.grid import FaceGrid
+from ..face.regions import smoothstep
+from ..geometry import robust_scale, tukey_weights
 from ..mesh import face_normals
 from ..spatial import MeshSurface
 
-__all__ = ["rigid_landmark_fit", "align_rigid", "RigidAlignment", "fit_mirror_symmetry"]
+__all__ = ["rigid_landmark_fit", "align_rigid", "RigidAlignment", "fit_mirror_symmetry", "stable_weight",
+           "residual_rigid_motion", "Realigned"]
 
 # A rigid fit over landmarks needs three pairs not on one line.
 _MIN_RIGID_LANDMARKS = 3
@@ -241,3 +253,126 @@ def fit_mirror_symmetry(grid: FaceGrid, **align_options) -> FrameTransform:
     matrix[:3, :3] = np.eye(3) - 2.0 * np.outer(normal, normal)
     matrix[:3, 3] = 2.0 * offset * normal
     return FrameTransform(matrix, "mirror")
+
+
+#: Weight of the rest of the face beside the stable parts in :func:`stable_weight`: it
+#: keeps the rotation determined when a stable part is missing from the scan.
+STABLE_ELSEWHERE = 0.1
+# The stable parts, in units of the inner eye corners' distance (about 37 mm) from the
+# middle of the eye line: the nose's bridge from above the saddles to half way down the
+# nose; the forehead from 1.2 units above the eye line; the temples beyond 0.55 of the
+# outer corners' distance, from 0.3 units below the eye line to 0.9 above it.
+_BRIDGE_HALF_WIDTH = (0.35, 0.5)
+_BRIDGE_SPAN = ((-0.95, -0.75), (0.45, 0.25))
+_FOREHEAD_FROM = (1.2, 1.45)
+_TEMPLE_FROM = (0.55, 0.62)
+_TEMPLE_SPAN = ((-0.3, -0.1), (0.9, 0.7))
+# The eye corners' distances assumed when a pair is missing (mm).
+_INNER_EYES_MM, _OUTER_EYES_MM = 37.0, 89.0
+
+
+def stable_weight(points, landmarks) -> np.ndarray:
+    """Weight in [0, 1] of each point (..., 3) of a face (roughly frontal, +y up) as a
+    part that no expression moves much: 1 on the nose's bridge, the upper forehead and
+    the temples (bone under thin skin), :data:`STABLE_ELSEWHERE` elsewhere, 0 at NaN
+    points. Placed from the eye corners (the nose saddles if they are missing)."""
+    lm = np.asarray(landmarks, dtype=np.float64)
+
+    def corner(name):
+        return lm[landmark_index(name)]
+
+    inner = [corner("Inner left eye corner"), corner("Inner right eye corner")]
+    outer = [corner("Outer left eye corner"), corner("Outer right eye corner")]
+    eyes = np.array([p for p in inner + outer if np.isfinite(p).all()])
+    if len(eyes) == 0:
+        eyes = np.array([p for p in (corner("Nose saddle left"), corner("Nose saddle right")) if np.isfinite(p).all()])
+    p = np.asarray(points, dtype=np.float64)
+    if len(eyes) == 0:
+        return np.where(np.isfinite(p).all(axis=-1), 1.0, 0.0)
+    middle = eyes.mean(axis=0)
+    inner_mm = float(np.linalg.norm(inner[0] - inner[1])) if np.isfinite(inner).all() else _INNER_EYES_MM
+    outer_mm = float(np.linalg.norm(outer[0] - outer[1])) if np.isfinite(outer).all() else _OUTER_EYES_MM
+    across = np.abs(p[..., 0] - middle[0])
+    up = (p[..., 1] - middle[1]) / inner_mm
+    bridge = (smoothstep(_BRIDGE_HALF_WIDTH[1] * inner_mm, _BRIDGE_HALF_WIDTH[0] * inner_mm, across)
+              * smoothstep(*_BRIDGE_SPAN[0], up) * smoothstep(*_BRIDGE_SPAN[1], up))
+    forehead = smoothstep(*_FOREHEAD_FROM, up)
+    temples = (smoothstep(_TEMPLE_FROM[0] * outer_mm, _TEMPLE_FROM[1] * outer_mm, across)
+               * smoothstep(*_TEMPLE_SPAN[0], up) * smoothstep(*_TEMPLE_SPAN[1], up))
+    weight = np.maximum.reduce([bridge, forehead, temples, np.full(up.shape, STABLE_ELSEWHERE)])
+    return np.where(np.isfinite(weight), weight, 0.0)
+
+
+#: The residual rigid motion's final fit keeps the pairs within 3 times this of it
+#: (mm): about twice the registration's noise on still skin.
+MODE_SCALE_MM = 0.3
+
+
+#: The residual rigid motion's final fits keep the pairs within 3 times this of it
+#: (mm): about twice the registration's noise on still skin.
+MODE_SCALE_MM = 0.3
+#: The final fits start from the field as it is, from the prior's fit, and from that fit
+#: moved this far (mm) up and down: raised brows and a dropped jaw pull a fit along the
+#: face's vertical axis.
+MODE_STARTS_MM = (-2.0, 2.0)
+
+
+def residual_rigid_motion(points, motion, prior, *, iterations: int = 10, tukey_factor: float = 3.0,
+                          min_scale_mm: float = 0.3) -> FrameTransform:
+    """The rigid motion left in a registered field: the rigid map E that takes the
+    points p (m, 3) to p + motion(p) over the largest part of the face that moved as one.
+
+    A robust fit (Tukey weights of the residuals) leaning on ``prior`` (m,), where a
+    point should be still, with the scale from the residuals' median over the points it
+    trusts most (at least ``min_scale_mm``), gives a start. From it, from no motion, and
+    from it moved up and down (:data:`MODE_STARTS_MM`), fits over every point with a
+    fixed small scale (:data:`MODE_SCALE_MM`) each settle on a set of points that one
+    rigid motion explains; the largest set wins (the still part: a part that moved as a
+    block, the forehead under raised brows or the dropped jaw, is a smaller one)."""
+    p = np.asarray(points, dtype=np.float64)
+    moved = p + np.asarray(motion, dtype=np.float64)
+    prior = np.asarray(prior, dtype=np.float64)
+    ok = np.isfinite(moved).all(axis=1) & (prior > 0)
+    p, moved, prior = p[ok], moved[ok], prior[ok]
+    if len(p) < 10:
+        return FrameTransform.identity()
+    trusted = prior > 0.5 if np.count_nonzero(prior > 0.5) >= 10 else slice(None)
+    start = similarity_transform(p, moved, scale=False, weights=prior)
+    for _ in range(iterations):
+        residual = np.linalg.norm(start.apply(p) - moved, axis=1)
+        weight = tukey_weights(residual, tukey_factor * robust_scale(residual[trusted], min_scale_mm)) * prior
+        if weight.sum() < 6:
+            break
+        start = similarity_transform(p, moved, scale=False, weights=weight)
+
+    def settle(transform):
+        """The fit with the fixed small scale from a start, and how many points it explains."""
+        for _ in range(iterations + 5):
+            weight = tukey_weights(np.linalg.norm(transform.apply(p) - moved, axis=1), tukey_factor * MODE_SCALE_MM)
+            if weight.sum() < 6:
+                return transform, 0.0
+            transform = similarity_transform(p, moved, scale=False, weights=weight)
+        weight = tukey_weights(np.linalg.norm(transform.apply(p) - moved, axis=1), tukey_factor * MODE_SCALE_MM)
+        return transform, float(weight.sum())
+
+    starts = [FrameTransform.identity(), start]
+    for shift in MODE_STARTS_MM:
+        matrix = start.matrix.copy()
+        matrix[1, 3] += shift
+        starts.append(FrameTransform(matrix, "rigid"))
+    best, _ = max((settle(s) for s in starts), key=lambda fit: fit[1])
+    return FrameTransform(best.matrix, "rigid")
+
+
+class Realigned:
+    """A displacement field with a rigid motion E taken out of it: the point a field
+    moves p to, p + u(p), mapped back by E^-1 (the expressive scan's pose corrected)."""
+
+    def __init__(self, motion, rigid: FrameTransform):
+        self.motion = motion
+        self.rigid = rigid
+        self._inverse = rigid.inverse()
+
+    def __call__(self, points) -> np.ndarray:
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        return self._inverse.apply(p + self.motion(p)) - p

@@ -1,11 +1,13 @@
 """Animation: the modelled motion carried onto the target, as one displacement field per
-AU that a frame scales and adds.
+AU (or whole expression) that a frame scales and adds.
 
 The default reads, at each target vertex, the source's registered motion at the
 corresponding point (the landmark TPS target -> source), weighted by the AU's region and
 side; a bilateral expression's carried field is averaged with its mirror image across
-the target's own plane too. The method as published warps each region through the moved
-control points instead (:mod:`tpscore.expression.published`). Both are linear in the
+the target's own plane too. Where the source's motion is cut at an opening, a target
+vertex takes the side of the target's own opening it lies on, and the target's mesh
+opens there. The method as published warps each region through the moved control
+points instead (:mod:`tpscore.expression.published`). Both are linear in the
 magnitude, so a frame of an animation is a scaled add of precomputed fields.
 """
 from __future__ import annotations
@@ -21,21 +23,24 @@ from .._threads import side_by_side
 from .._validation import as_real
 from ..face.landmarks import landmark_map
 from ..face.normalise import NormalisedFace
-from ..face.regions import region_weight, side_weight, smoothstep
-from .action_units import MAX_WEIGHT
+from ..face.openings import opening_cut, opening_sides
+from ..face.regions import region_boundary, region_weight, side_weight, smoothstep
+from .action_units import MAX_WEIGHT, WHOLE_FACE
+from .cut_motion import CutMotion, opening_pairs
 from .mirror import MirroredMotion
-from .modelling import ExpressionModel, mirrored
-from .published import control_point_warp, mouth_width_ratio
+from .modelling import ExpressionModel, activation_weight, coverage, mirrored, openings
 
-__all__ = ["Animation", "animate", "magnitude_weights"]
-
+__all__ = ["Animation", "carry", "magnitude_weights", "field_labels"]
 
 @dataclass
 class Animation:
     """Precomputed displacement fields of a transfer on the target grid.
 
     ``frame(m)`` is the target's neutral grid plus m times the summed AU fields (or a
-    weight per AU); it costs one scaled add per AU.
+    weight per AU); it costs one scaled add per AU. ``cut`` is, where the motion is cut
+    at an opening, the side of the cut each target vertex lies on (+1 above, -1 below, 0
+    away from it; :func:`tpscore.face.openings.opening_cut`), None without a cut:
+    :meth:`triangles` leaves out the triangles that straddle it.
     """
 
     target: NormalisedFace
@@ -43,6 +48,7 @@ class Animation:
     fields: np.ndarray            # (n_aus, H, W, 3) displacement at magnitude 1, reference frame
     control_points: list[np.ndarray]
     moved_control_points: list[np.ndarray]
+    cut: np.ndarray | None = None
 
     def __post_init__(self):
         self._neutral = np.where(self.target.grid.mask[..., None], self.target.grid.points, np.nan)
@@ -82,6 +88,17 @@ class Animation:
     def sweep(self, magnitudes: Sequence[float]) -> list[np.ndarray]:
         return [self.frame(m) for m in magnitudes]
 
+    def triangles(self) -> np.ndarray:
+        """(m, 3) the target grid's triangles (flat grid indices, see
+        :meth:`tpscore.FaceGrid.triangles`) without those that straddle a cut opening:
+        an opened mouth is an opening in the mesh."""
+        triangles = self.target.grid.triangles()
+        if self.cut is None:
+            return triangles
+        side = self.cut.reshape(-1)[triangles]
+        torn = (side.min(axis=1) < 0) & (side.max(axis=1) > 0)
+        return triangles[~torn]
+
     @classmethod
     def combine(cls, animations: Sequence["Animation"]) -> "Animation":
         """One animation from several on the same target (e.g. each AU modelled from its
@@ -97,9 +114,11 @@ class Animation:
         labels = [label for a in animations for label in a.labels]
         if len(set(labels)) != len(labels):
             raise ValueError(f"the animations repeat AU labels: {labels}")
+        cuts = [a.cut for a in animations if a.cut is not None]
         return cls(first.target, labels, np.concatenate([a.fields for a in animations]),
                    [c for a in animations for c in a.control_points],
-                   [c for a in animations for c in a.moved_control_points])
+                   [c for a in animations for c in a.moved_control_points],
+                   cuts[0] if cuts else None)
 
 
 def magnitude_weights(magnitude, labels: Sequence[str] | None = None) -> np.ndarray:
@@ -130,32 +149,120 @@ def magnitude_weights(magnitude, labels: Sequence[str] | None = None) -> np.ndar
     return np.array(values, dtype=np.float64)
 
 
-def _carried(model: ExpressionModel, target: NormalisedFace) -> np.ndarray:
+def by_region(activations) -> dict[str, list]:
+    """Activations (or anything with ``.activation``) grouped by their region, in order:
+    AUs of one region modelled from one scan share one field."""
+    groups: dict[str, list] = {}
+    for item in activations:
+        activation = getattr(item, "activation", item)
+        groups.setdefault(activation.action_unit.region, []).append(item)
+    return groups
+
+
+def field_labels(activations) -> list[str]:
+    """The labels of a transfer's fields (``AU1+AU4``, ``AU12``, ``happiness``), known
+    before the transfer runs (a magnitude given per field names them)."""
+    return ["+".join(getattr(a, "activation", a).label for a in group) for group in by_region(activations).values()]
+
+
+def _carried(model: ExpressionModel, target: NormalisedFace, merge_mm: float):
     """The source's dense motion read at the target's valid vertices through the landmark
-    correspondence (and averaged with its mirror image for a bilateral expression)."""
-    options = model.options
-    to_source = landmark_map(target.landmarks, model.source.landmarks, merge_mm=options.merge_landmarks_mm,
-                             what="target -> source")
+    correspondence (and averaged with its mirror image for a bilateral expression); with
+    the share of the upper side each takes where the motion is cut (None otherwise)."""
+    dense = model.dense
+    to_source = _target_to_source(model, target, merge_mm)
+    sides = (dense.upper, dense.lower) if isinstance(dense, CutMotion) else (dense,)
 
-    def carry(points):
-        return model.dense(to_source(points))
+    def carried_side(field):
+        def carry(points):
+            return field(to_source(points))
 
-    if isinstance(model.dense, MirroredMotion):
-        # a bilateral expression is symmetric on the target too: the mirror image of the
-        # carried field evens out the correspondence's landmark noise
-        carry = mirrored(carry, target)
+        if isinstance(field, MirroredMotion):
+            # a bilateral expression is symmetric on the target too: the mirror image of
+            # the carried field evens out the correspondence's landmark noise
+            carry = mirrored(carry, target)
+        return carry
+
     grid = target.grid
     points = grid.points.reshape(-1, 3)[grid.mask.ravel()]
     # point by point, so two halves on two threads give the same field (the second
     # core is free once the source is registered)
     half = len(points) // 2
-    return np.concatenate(side_by_side(lambda: carry(points[:half]), lambda: carry(points[half:])))
+    values = []
+    for field in sides:
+        carry = carried_side(field)
+        values.append(np.concatenate(side_by_side(lambda: carry(points[:half]), lambda: carry(points[half:]))))
+    if len(values) == 1:
+        return values[0], None
+    names = {opening.name for opening in dense.openings}
+    own = [opening for name, opening in openings(target).items() if name in names]
+    share = opening_sides(own, points)
+    cut = np.zeros(grid.mask.shape, dtype=np.int8)
+    cut[grid.mask] = opening_cut(own, points)
+    upper = values[0]
+    for opening in own:
+        if opening.name in dense.closure:
+            upper = _closing(opening, dense.closure[opening.name], points, upper)
+    return share[:, None] * upper + (1.0 - share[:, None]) * values[1], cut
+
+
+#: The factor an eye's carried upper-lid motion is scaled by stays within these bounds.
+CLOSING_SCALE = (0.5, 2.0)
+
+
+def _closing(opening, closure: np.ndarray, points: np.ndarray, motion: np.ndarray) -> np.ndarray:
+    """The upper side's motion at an eye of the target, scaled so that the target's own
+    upper lid travels the share of its own opening that the source's did (``closure``
+    per knot): eyes differ in height, and a lid carried in millimetres would stop short
+    of the lower lid or cross it. The factor is measured at the rim (the vertices that
+    border the eye's hole) per knot, and fades with the eye's window."""
+    top, bottom = opening.top, opening.bottom
+    known = np.isfinite(top) & np.isfinite(bottom) & np.isfinite(closure)
+    if known.sum() < 3:
+        return motion
+    a, b = opening.coordinates(points)
+    moved_b = opening.coordinates(points + motion)[1]
+    knot = np.rint(np.clip(a, 0.0, 1.0) * (len(top) - 1)).astype(np.int64)
+    near_rim = (b > top[knot]) & (b < top[knot] + 1.5) & known[knot] & (a > 0.05) & (a < 0.95)
+    factor = np.full(len(top), np.nan)
+    for k in np.flatnonzero(known):
+        here = near_rim & (knot == k)
+        travel = -np.median(moved_b[here] - b[here]) if here.any() else np.nan
+        wanted = closure[k] * (top[k] - bottom[k])
+        if np.isfinite(travel) and abs(travel) > 0.5 and wanted * travel > 0:
+            factor[k] = np.clip(wanted / travel, *CLOSING_SCALE)
+    found = np.isfinite(factor)
+    if found.sum() < 3:
+        return motion
+    scale = np.interp(a, opening.knots[found], factor[found])
+    side, split = opening.sides(points)
+    weight = np.where(side > 0, split, 0.0)
+    return motion * (1.0 + (scale - 1.0) * weight)[:, None]
+
+
+def _target_to_source(model: ExpressionModel, target: NormalisedFace, merge_mm: float):
+    """The map of target points onto the source: the landmark TPS, and where the motion
+    is cut at openings, a TPS through the landmarks and the openings' edges too
+    (:func:`tpscore.expression.cut_motion.opening_pairs`)."""
+    if not isinstance(model.dense, CutMotion):
+        return landmark_map(target.landmarks, model.source.landmarks, merge_mm=merge_mm, what="target -> source")
+    names = [opening.name for opening in model.dense.openings]
+    from_edges, to_edges = opening_pairs(openings(target), target, openings(model.source), model.source, names)
+    return landmark_map(target.landmarks, model.source.landmarks, merge_mm=merge_mm, what="target -> source",
+                        extra=(from_edges, to_edges))
+
+
+#: How far below the upper/lower boundary (mm) the upper face's motion may continue
+#: (the brows' muscles move the nasal root and bridge, not the mouth: a scan of a whole
+#: expression moves the jaw too, and its motion reaches the brows' through the cheeks).
+SPILL_REACH_MM = 30.0
 
 
 def _spill(upper_weight: np.ndarray, carried: np.ndarray, fraction: float,
-           valid: np.ndarray) -> np.ndarray:
+           valid: np.ndarray, below_mm: np.ndarray | None = None) -> np.ndarray:
     """Raise the upper region's weight to 1 where the carried motion continues the upper
-    region's own motion below the boundary.
+    region's own motion below the boundary, at most :data:`SPILL_REACH_MM` below it
+    (``below_mm``: each vertex's distance below the boundary).
 
     The peak is the 95th percentile of the motion's size inside the upper region. A
     vertex below takes part when its motion is at least ``fraction`` of the peak (a
@@ -169,6 +276,8 @@ def _spill(upper_weight: np.ndarray, carried: np.ndarray, fraction: float,
     if not peak > 0:
         return upper_weight
     t = smoothstep(fraction * peak, 2.0 * fraction * peak, size) * smoothstep(1.5 * peak, peak, size)
+    if below_mm is not None:
+        t = t * (below_mm < SPILL_REACH_MM)
     part = np.zeros(valid.shape, dtype=bool)
     part[valid] = t > 0
     labels = ndimage.label(part)[0][valid]
@@ -178,50 +287,83 @@ def _spill(upper_weight: np.ndarray, carried: np.ndarray, fraction: float,
     return np.maximum(upper_weight, np.where(keep, t, 0.0))
 
 
-def animate(model: ExpressionModel, target: NormalisedFace) -> Animation:
-    """Carry the modelled motion onto the target and precompute the fields.
+def _below_boundary(points, landmarks) -> np.ndarray:
+    """Each point's distance (mm) below the upper/lower boundary (negative above it)."""
+    slope, intercept = region_boundary(landmarks)
+    return -(points[:, 1] - (slope * points[:, 0] + intercept)) / np.hypot(1.0, slope)
+
+
+def _covered(model: ExpressionModel, target: NormalisedFace, merge_mm: float) -> np.ndarray:
+    """How well the source's scan covers where each valid target vertex reads its motion
+    (or that point's mirror image, for a mirrored field): a whole expression fades where
+    the source's scan has no data."""
+    to_source = _target_to_source(model, target, merge_mm)
+    grid = target.grid
+    at = to_source(grid.points.reshape(-1, 3)[grid.mask.ravel()])
+    covers = coverage(model.source)
+    weight = covers(at)
+    dense = model.dense.upper if isinstance(model.dense, CutMotion) else model.dense
+    if isinstance(dense, MirroredMotion):
+        weight = np.maximum(weight, covers(dense.mirror.apply(at)))
+    return weight
+
+
+def carry(model: ExpressionModel, target: NormalisedFace, *, transition_mm: float, side_transition_mm: float,
+          upper_spill: float, merge_landmarks_mm: float) -> Animation:
+    """Carry the source's dense motion onto the target and precompute the fields.
 
     AUs of one region modelled from the same expressive scan share one field (labelled
     e.g. ``AU1+AU4``): that scan shows their combined motion, so a point two AUs share
-    moves once. AUs modelled from different scans are combined with
-    :meth:`Animation.combine`, where their fields add.
+    moves once. Regions that overlap share a point's motion (their weights there are
+    scaled to add up to at most 1). AUs modelled from different scans are combined
+    with :meth:`Animation.combine`, where their fields add.
     """
-    options = model.options
-    published = options.method == "published"
-    to_target = landmark_map(model.source.landmarks, target.landmarks, merge_mm=options.merge_landmarks_mm,
-                             what="source -> target")
-    lower_scale = mouth_width_ratio(model.source.landmarks, target.landmarks) if published else 1.0
     grid = target.grid
     flat, valid = grid.points.reshape(-1, 3), grid.mask.ravel()
-    by_region: dict[str, list] = {}
-    for motion in model.motions:
-        by_region.setdefault(motion.activation.action_unit.region, []).append(motion)
-    if not published:
-        carried = _carried(model, target)
-        upper = region_weight("upper", grid.points, target.landmarks, options.transition_mm).ravel()[valid]
-        if "upper" in by_region and options.upper_spill > 0:
-            # one scan's motion is shared by its regions: the lower region gives up what
-            # the upper one keeps, so each point still takes the motion once
-            upper = _spill(upper, carried, options.upper_spill, grid.mask)
-    labels, fields, controls, moved = [], [], [], []
-    for region, motions in by_region.items():
-        control = target.snap(to_target(np.vstack([m.neutral for m in motions])), "vertex" if published else "surface")
-        scale = lower_scale if region == "lower" else 1.0
-        displacement = np.vstack([m.motion for m in motions]) * scale
-        field_flat = np.zeros_like(flat)
-        if published:
-            region_w = region_weight(region, grid.points, target.landmarks, options.transition_mm)
-            field_flat[valid] = control_point_warp(control, displacement)(flat[valid]) * region_w.ravel()[valid, None]
+    groups = by_region(model.motions)
+    carried, cut = _carried(model, target, merge_landmarks_mm)
+    upper = region_weight("upper", grid.points, target.landmarks, transition_mm).ravel()[valid]
+    if "upper" in groups and upper_spill > 0:
+        # one scan's motion is shared by its regions: the lower region gives up what
+        # the upper one keeps, so each point still takes the motion once
+        upper = _spill(upper, carried, upper_spill, grid.mask, _below_boundary(flat[valid], target.landmarks))
+    to_reference = None
+    region_weights = {}
+    for region, motions in groups.items():
+        if region == "upper":
+            region_weights[region] = upper
+        elif region == "lower":
+            region_weights[region] = 1.0 - upper
+        elif region == WHOLE_FACE:
+            region_weights[region] = _covered(model, target, merge_landmarks_mm)
         else:
-            # each point takes the scan's motion once, at the largest weight of the AUs
-            # that cover its side
-            share = np.max([m.activation.weight * side_weight(m.activation.side, grid.points, target.landmarks,
-                                                              options.side_transition_mm) for m in motions], axis=0)
-            region_flat = upper if region == "upper" else 1.0 - upper
-            weight = region_flat * np.broadcast_to(share, grid.mask.shape).ravel()[valid]
-            field_flat[valid] = carried * (scale * weight[:, None])
+            if to_reference is None:
+                to_reference = landmark_map(target.landmarks, model.reference.landmarks, merge_mm=merge_landmarks_mm,
+                                            what="target -> reference")
+            region_weights[region] = activation_weight(motions[0].activation, flat[valid], target.landmarks,
+                                                       model.library, model.reference.landmarks, transition_mm,
+                                                       to_reference)
+    total = np.sum(list(region_weights.values()), axis=0)
+    # (the two halves add up to 1 but for rounding: they are left as they are)
+    overlap = np.where(total > 1.0 + 1e-9, 1.0 / np.maximum(total, 1e-12), 1.0)
+    labels, fields = [], []
+    for region, motions in groups.items():
+        # each point takes the scan's motion once, at the largest weight of the AUs that
+        # cover its side
+        sides = np.max([m.activation.weight * side_weight(m.activation.side, grid.points, target.landmarks,
+                                                          side_transition_mm) for m in motions], axis=0)
+        weight = region_weights[region] * overlap * np.broadcast_to(sides, grid.mask.shape).ravel()[valid]
+        field_flat = np.zeros_like(flat)
+        field_flat[valid] = carried * weight[:, None]
         labels.append("+".join(m.activation.label for m in motions))
         fields.append(field_flat.reshape(grid.points.shape))
-        controls.append(control)
-        moved.append(control + displacement)
-    return Animation(target, labels, np.stack(fields), controls, moved)
+    controls = [target.snap(_to_target(model, target, merge_landmarks_mm)(np.vstack([m.neutral for m in motions])),
+                            "surface") if any(len(m.neutral) for m in motions) else np.zeros((0, 3))
+                for motions in groups.values()]
+    moved = [c + np.vstack([m.motion for m in motions]) if len(c) else c
+             for c, motions in zip(controls, groups.values())]
+    return Animation(target, labels, np.stack(fields), controls, moved, cut)
+
+
+def _to_target(model: ExpressionModel, target: NormalisedFace, merge_mm: float):
+    return landmark_map(model.source.landmarks, target.landmarks, merge_mm=merge_mm, what="source -> target")

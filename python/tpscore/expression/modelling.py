@@ -3,7 +3,9 @@
 The default registers the source's neutral surface onto its expressive scan densely
 (:mod:`tpscore.expression.registration`), after aligning the expressive scan rigidly onto
 the neutral one (:mod:`tpscore.expression.alignment`): normalising it on its own landmarks
-would remove real motion (AU17 moves the chin, a landmark of the normalisation). Each
+would remove real motion (AU17 moves the chin, a landmark of the normalisation). Where
+the expressive scan shows an opening (the mouth, an eye) open by another amount than
+the neutral one, the motion is cut there (:mod:`tpscore.expression.cut_motion`). Each
 AU's control points, placed once on the reference face
 (:mod:`tpscore.expression.action_units`), are carried onto the neutral source by the
 landmark TPS, and their motion read from the field. The method as published models
@@ -19,19 +21,20 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..face.grid import FaceGrid
-from ..face.landmarks import landmark_map
-from ..face.normalise import NormalisedFace
-from ..face.regions import region_weight
-from .action_units import ActionUnit, Activation
-from .alignment import align_rigid, fit_mirror_symmetry
+from ..face.normalise import NormalisedFace, landmark_transform
+from ..face.openings import find_openings
+from ..face.regions import HALVES, region_weight
+from .action_units import ActionUnit, ActionUnitLibrary, Activation, WHOLE_FACE
+from .alignment import Realigned, align_rigid, fit_mirror_symmetry, residual_rigid_motion, stable_weight
+from .cut_motion import CutMotion, moved_openings, register_cut
 from .mirror import Coverage, MirroredMotion
-from .options import TransferOptions
 from .registration import DenseMotion, MotionOptions, RegistrationGrid, prepare_registration, register_surfaces
-from .texture import track_texture
+from .texture import TextureOptions, track_texture
 
-__all__ = ["ControlPointMotion", "ExpressionModel", "PersonMismatchWarning", "place_control_points",
-           "align_expressive", "dense_motion", "model_expression", "mirror_plane", "mirrored", "uses_mirror",
-           "registration_grid", "SAME_PERSON_MEDIAN_MM"]
+__all__ = ["ControlPointMotion", "ExpressionModel", "PersonMismatchWarning", "place_control_points", "Extended",
+           "align_expressive", "still_weight", "dense_motion", "mirror_plane", "mirrored", "coverage",
+           "registration_grid", "openings", "activation_weight", "needs_realignment", "realigned",
+           "SAME_PERSON_MEDIAN_MM"]
 
 
 def place_control_points(action_unit: ActionUnit, reference: NormalisedFace) -> np.ndarray:
@@ -54,7 +57,8 @@ def place_control_points(action_unit: ActionUnit, reference: NormalisedFace) -> 
 
 @dataclass(frozen=True)
 class ControlPointMotion:
-    """One AU's control points on the neutral source and their modelled motion."""
+    """One AU's control points on the neutral source and their modelled motion (empty
+    for a whole expression, which has none)."""
 
     activation: Activation
     names: tuple[str, ...]
@@ -64,17 +68,19 @@ class ControlPointMotion:
 
 @dataclass
 class ExpressionModel:
-    """The modelled motion of one or more AUs on a source person.
+    """The modelled motion of one or more AUs (or a whole expression) on a source person.
 
-    ``dense`` is the registered displacement field of the source (averaged with its
-    mirror image for a bilateral expression; None for the method as published);
-    ``motions`` hold each AU's control points and their motion.
+    ``dense`` is the registered displacement field of the source (cut at its moved
+    openings, averaged with its mirror image for a bilateral expression; None for the
+    method as published); ``motions`` hold each AU's control points and their motion;
+    ``reference`` is the reference face the AUs' regions are placed on.
     """
 
     source: NormalisedFace
     motions: list[ControlPointMotion]
-    options: TransferOptions
-    dense: DenseMotion | MirroredMotion | None = None
+    reference: NormalisedFace
+    library: ActionUnitLibrary
+    dense: object = None
 
     @property
     def labels(self) -> list[str]:
@@ -85,7 +91,9 @@ class ExpressionModel:
         """The texture matches the dense motion used
         (:class:`tpscore.expression.texture.TextureMatches`), or None when it came from
         the geometry alone."""
-        dense = self.dense.motion if isinstance(self.dense, MirroredMotion) else self.dense
+        dense = self.dense
+        while dense is not None and not isinstance(dense, (DenseMotion, CutMotion)):  # unwrap
+            dense = getattr(dense, "motion", None)
         return getattr(dense, "texture", None)
 
 
@@ -103,24 +111,62 @@ class PersonMismatchWarning(UserWarning):
 SAME_PERSON_MEDIAN_MM = {"still": 0.35, "whole": 1.3}
 
 
+def activation_weight(activation: Activation, points, landmarks, library: ActionUnitLibrary,
+                      reference_landmarks, transition_mm: float, to_reference=None) -> np.ndarray:
+    """Weight in [0, 1] of an activation's region at points (..., 3) of a face with these
+    landmarks: a half of the face (by its eye line, with a seam ``transition_mm`` wide),
+    the whole face (1), or a named region, placed on the reference face's landmarks
+    after ``to_reference`` (a map of points into the reference frame; default: the
+    similarity over the landmarks)."""
+    region = activation.action_unit.region
+    p = np.asarray(points, dtype=np.float64)
+    if region in HALVES:
+        return region_weight(region, p, landmarks, transition_mm)
+    if region == WHOLE_FACE:
+        return np.where(np.isfinite(p).all(axis=-1), 1.0, 0.0)
+    if to_reference is None:
+        to_reference = landmark_transform(landmarks, reference_landmarks).apply
+    mapped = to_reference(p.reshape(-1, 3)).reshape(p.shape)
+    return library.region(region).weight(mapped, reference_landmarks)
+
+
+def still_weight(grid: FaceGrid, activations: Sequence[Activation], library: ActionUnitLibrary,
+                 reference_landmarks):
+    """Where an expression should leave the expressive scan still, as a weight per grid
+    vertex (None: no part can be said to be still, align the whole face robustly):
+
+    - AUs of one half of the face: the other half (a 10 mm seam);
+    - otherwise (AUs of named regions, whose skin pulls on much of the face around
+      them, or a whole expression): the parts no expression moves much
+      (:func:`stable_weight`); the motion is then realigned (:func:`realigned`).
+    """
+    regions = {act.action_unit.region for act in activations}
+    if regions <= set(HALVES):
+        if len(regions) != 1:
+            return None
+        other = "lower" if next(iter(regions)) == "upper" else "upper"
+        return region_weight(other, grid.points, grid.landmarks, 10.0)
+    return stable_weight(grid.points, grid.landmarks)
+
+
+def needs_realignment(activations: Sequence[Activation]) -> bool:
+    """Whether the alignment relied on the stable parts alone (see :func:`still_weight`),
+    so that the registered motion still holds a rigid part to take out."""
+    return not {act.action_unit.region for act in activations} <= set(HALVES)
+
+
 def align_expressive(neutral: NormalisedFace, neutral_grid: FaceGrid, expressive_grid: FaceGrid,
-                     regions: Sequence[str] = ()) -> NormalisedFace:
+                     still=None) -> NormalisedFace:
     """The source's expressive scan in the reference frame, by rigid alignment onto the
     same person's neutral scan followed by the neutral scan's normalisation.
 
-    When every AU moves one region, the alignment relies on the other region (a smile
-    does not move the forehead, a brow raise not the chin); otherwise on the whole face,
-    robustly.
+    ``still`` (a weight per vertex of the expressive grid, :func:`still_weight`) says
+    which part the alignment relies on; None: the whole face, robustly.
     """
-    still = None
-    if len(set(regions)) == 1:
-        moving_region = next(iter(regions))
-        still = region_weight("lower" if moving_region == "upper" else "upper",
-                              expressive_grid.points, expressive_grid.landmarks, 10.0)
     alignment = align_rigid(expressive_grid, neutral_grid, fixed_surface=None, still_weight=still)
     limit = SAME_PERSON_MEDIAN_MM["whole" if still is None else "still"]
     if alignment.median_distance_mm > limit:
-        part = "the face" if still is None else f"the {'lower' if moving_region == 'upper' else 'upper'} face"
+        part = "the face" if still is None else "its still part"
         warnings.warn(
             f"the expressive scan does not fit the neutral scan rigidly: {part} lies a median "
             f"{alignment.median_distance_mm:.2f} mm off it after the alignment (two scans of one person: "
@@ -131,12 +177,18 @@ def align_expressive(neutral: NormalisedFace, neutral_grid: FaceGrid, expressive
     return NormalisedFace(moved, transform)
 
 
-def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFace,
-                 options: TransferOptions = TransferOptions(),
-                 while_registering: Callable[[], object] | None = None) -> DenseMotion:
+def openings(face: NormalisedFace):
+    """The face's openings (:func:`tpscore.face.openings.find_openings`), found once per face."""
+    return face.derived("openings", find_openings)
+
+
+def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFace, motion: MotionOptions,
+                 texture_options: TextureOptions, while_registering: Callable[[], object] | None = None):
     """Register the neutral source onto its expressive scan (both in the reference
     frame), with their texture when either has a colour image (warning and falling back
-    to the geometry when the other has none or the images cannot be used).
+    to the geometry when the other has none or the images cannot be used): a
+    :class:`DenseMotion`, or a :class:`CutMotion` where the expressive scan shows an
+    opening open by another amount.
 
     ``while_registering`` is called as the registration starts: a caller starts there
     the work it wants on another thread while the registration runs (it uses one core,
@@ -146,26 +198,68 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
         # the expressive surface is built while the texture is tracked
         surface = second_thread.submit(source_expressive.surface)
         if source_neutral.grid.image is not None or source_expressive.grid.image is not None:
-            texture = track_texture(source_neutral.grid, source_expressive.grid, options.texture)
+            texture = track_texture(source_neutral.grid, source_expressive.grid, texture_options)
         if while_registering is not None:
             while_registering()
-        return register_surfaces(source_neutral.grid.points, source_neutral.grid.mask,
-                                 source_neutral.landmarks, surface.result(), source_expressive.landmarks,
-                                 options.motion, texture=texture,
-                                 prepared=registration_grid(source_neutral, options.motion))
+        grid = source_neutral.grid
+        prepared = registration_grid(source_neutral, motion)
+
+        def register(weight=None, landmarks=None, pairs=None):
+            field = register_surfaces(grid.points, grid.mask,
+                                      source_neutral.landmarks if landmarks is None else landmarks,
+                                      surface.result(), source_expressive.landmarks, motion, weight=weight,
+                                      texture=texture, prepared=prepared, pairs=pairs)
+            return Extended(field, source_neutral)
+
+        moved = moved_openings(openings(source_neutral), source_expressive.grid)
+        if not moved:
+            return register()
+        return register_cut(source_neutral, source_expressive, moved, register, texture, motion.texture_weight)
+
+
+def realigned(field, face: NormalisedFace):
+    """The field with the rigid motion left in it taken out
+    (:func:`tpscore.expression.alignment.residual_rigid_motion` over the face's valid
+    vertices, weighted by :func:`stable_weight`): the alignment of a whole expression
+    has no part it knows to be still."""
+    points = face.grid.points[face.grid.mask]
+    rigid = residual_rigid_motion(points, field(points), stable_weight(points, face.landmarks))
+    if isinstance(field, CutMotion):
+        return field.split(lambda side: Realigned(side, rigid))
+    return Realigned(field, rigid)
+
+
+class Extended:
+    """A field registered on a face, extended beyond the face's data by its value at the
+    nearest vertex: past the scan's edge (a target's chin reaching lower than the
+    source's scan) a lattice field only extrapolates, and a dropped jaw would lift the
+    chin's lowest part instead of dropping it. Within the face's coverage
+    (:class:`Coverage`) it is the field itself, beyond twice its reach the nearest
+    vertex's value, blended in between."""
+
+    def __init__(self, motion, face: NormalisedFace):
+        self.motion = motion
+        self.face = face
+        self._coverage = coverage(face)
+
+    def __call__(self, points) -> np.ndarray:
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        out = self.motion(p)
+        finite = np.isfinite(p).all(axis=1)
+        covered = np.ones(len(p))
+        covered[finite] = self._coverage(p[finite])
+        beyond = finite & (covered < 1.0)
+        if beyond.any():
+            nearest = self.face.grid.points.reshape(-1, 3)[self.face.nearest_vertex(p[beyond])]
+            w = covered[beyond, None]
+            out[beyond] = w * out[beyond] + (1.0 - w) * self.motion(nearest)
+        return out
 
 
 def registration_grid(face: NormalisedFace, options: MotionOptions) -> RegistrationGrid:
     """:func:`prepare_registration` of the face's grid with these options, made once per face."""
     return face.derived(("registration", options),
                         lambda f: prepare_registration(f.grid.points, f.grid.mask, options))
-
-
-def uses_mirror(activations: Sequence[Activation], options: TransferOptions) -> bool:
-    """Whether the modelled motion is averaged with its mirror image: on by default for
-    an expression of both sides (no AU with a side of its own)."""
-    return options.method != "published" and options.mirror_average \
-        and all(act.side is None for act in activations)
 
 
 def mirror_plane(face: NormalisedFace):
@@ -176,7 +270,11 @@ def mirror_plane(face: NormalisedFace):
 
 def mirrored(field, face: NormalisedFace):
     """A displacement field on ``face`` averaged with its mirror image across the face's
-    plane of symmetry, or unchanged (with a warning) when the plane cannot be fitted."""
+    plane of symmetry, or unchanged (with a warning) when the plane cannot be fitted. A
+    cut field is averaged side by side (a point and its mirror image lie on the same
+    side of the mouth and of the eyes)."""
+    if isinstance(field, CutMotion):
+        return field.split(lambda side: mirrored(side, face))
     try:
         mirror = mirror_plane(face)
     except ValueError as error:
@@ -189,34 +287,3 @@ def coverage(face: NormalisedFace) -> Coverage:
     """How well the face's vertices cover points of its x-y plane (the weights of a
     mirror average), made once per face."""
     return face.derived("coverage", lambda f: Coverage(f.grid.points[f.grid.mask]))
-
-
-def model_expression(source_neutral: NormalisedFace, source_expressive: NormalisedFace,
-                     activations: Sequence[Activation], reference: NormalisedFace,
-                     options: TransferOptions = TransferOptions(),
-                     while_registering: Callable[[], object] | None = None) -> ExpressionModel:
-    """Each AU's control points on the neutral source and their motion: from the dense
-    registration (the default), or from the landmark TPS and a snap onto the expressive
-    scan (the method as published). ``while_registering``: see :func:`dense_motion`."""
-    published = options.method == "published"
-    snap = "vertex" if published else "surface"
-    to_source = landmark_map(reference.landmarks, source_neutral.landmarks, merge_mm=options.merge_landmarks_mm,
-                             what="reference -> source")
-    dense = None
-    if published:
-        to_expressive = landmark_map(source_neutral.landmarks, source_expressive.landmarks,
-                                     merge_mm=options.merge_landmarks_mm, what="source neutral -> expressive")
-    else:
-        dense = dense_motion(source_neutral, source_expressive, options, while_registering)
-        if uses_mirror(activations, options):
-            dense = mirrored(dense, source_neutral)
-    motions = []
-    for act in activations:
-        neutral = source_neutral.snap(to_source(place_control_points(act.action_unit, reference)), snap)
-        if published:
-            motion = source_expressive.snap(to_expressive(neutral), snap) - neutral
-        else:
-            motion = dense(neutral)
-        weights = act.action_unit.side_weights(act.side) * act.weight
-        motions.append(ControlPointMotion(act, tuple(act.action_unit.names), neutral, motion * weights[:, None]))
-    return ExpressionModel(source_neutral, motions, options, dense)

@@ -14,22 +14,22 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from functools import partial
+from functools import cached_property, partial
 from typing import Callable, Mapping
 
 import numpy as np
 
 from .._threads import blas_on_one_thread
 from ..face.average_face import AverageFace, load_average_face
-from ..face.grid import FaceGrid, load_scan
+from ..face.grid import FaceGrid, GridMesh, load_scan
 from ..face.landmarks import MIN_LANDMARKS, N_LANDMARKS
 from ..face.normalise import NormalisedFace, normalise_face
 from ..face.pose import check_landmarks
 from ..face.regions import region_boundary
 from .action_units import ActionUnitLibrary, default_library
-from .animation import Animation, animate, magnitude_weights
-from .modelling import (ExpressionModel, align_expressive, coverage, mirror_plane, model_expression,
-                        registration_grid, uses_mirror)
+from .animation import Animation, magnitude_weights
+from .methods import transfer_method
+from .modelling import ExpressionModel, coverage, mirror_plane
 from .options import TransferOptions
 
 __all__ = ["TransferResult", "transfer"]
@@ -42,13 +42,14 @@ _STAGE_MESSAGES = {"read": "read the source's scans", "normalise": "normalised t
                    "animate": "carried the motion onto the target"}
 
 
-@dataclass
+@dataclass(frozen=True)
 class TransferResult:
     """The target wearing the expression, in the reference frame and in its scan frame.
 
     ``vertices``, ``neutral``, ``mask``, ``uv``, ``image`` and ``colours`` describe the
     animated target on its grid, in the target scan's own frame, with the target's own
-    colours; ``animation`` gives any other magnitude.
+    colours; ``animation`` gives any other magnitude. The frames are computed once, on
+    first use (the result does not change: another magnitude is ``animation.frame(m)``).
     """
 
     animation: Animation
@@ -71,20 +72,20 @@ class TransferResult:
     def target(self) -> NormalisedFace:
         return self.animation.target
 
-    @property
+    @cached_property
     def vertices_normalised(self) -> np.ndarray:
         return self.animation.frame(self.magnitude)
 
-    @property
+    @cached_property
     def neutral_normalised(self) -> np.ndarray:
         return self.animation.frame(0.0)
 
-    @property
+    @cached_property
     def vertices(self) -> np.ndarray:
         """(H, W, 3) animated target in the target scan's own frame."""
         return self.animation.frame_in_scan(self.magnitude)
 
-    @property
+    @cached_property
     def neutral(self) -> np.ndarray:
         """(H, W, 3) the target grid it started from, in the target scan's own frame."""
         return self.animation.frame_in_scan(0.0)
@@ -109,6 +110,23 @@ class TransferResult:
         """(H, W, 3) float32 RGB in [0, 1]: the target's colour at each vertex, which the
         skin keeps as it moves (NaN where the mask is False); None without an image."""
         return self.target.grid.colours
+
+    def triangles(self) -> np.ndarray:
+        """(m, 3) the target grid's triangles (flat grid indices) without those that
+        straddle an opened mouth (:meth:`Animation.triangles`)."""
+        return self.animation.triangles()
+
+    def mesh(self, magnitude=None) -> GridMesh:
+        """The animated target as an indexed mesh in the target scan's frame (its valid
+        vertices, the triangles of :meth:`triangles`, u,v): at the result's magnitude,
+        or at another."""
+        vertices = self.vertices if magnitude is None else self.animation.frame_in_scan(magnitude)
+        grid = self.target.grid
+        index = np.flatnonzero(grid.mask.reshape(-1))
+        remap = np.full(grid.mask.size, -1, dtype=np.int64)
+        remap[index] = np.arange(len(index))
+        return GridMesh(np.ascontiguousarray(vertices.reshape(-1, 3)[index]), remap[self.triangles()],
+                        np.ascontiguousarray(grid.uv.reshape(-1, 2)[index]), index)
 
     def field_in_scan(self) -> np.ndarray:
         """(H, W, 3) the displacement at the result's magnitude, in the target scan's
@@ -160,10 +178,12 @@ def transfer(source_neutral: Scan, source_expressive: Scan, target: Scan, action
         beside each scan, a 150 x 150 grid): the source's two scans are then read side
         by side, and the target while the source's motion is measured.
     action_units : str, mapping or sequence
-        What to transfer: ``"12"``, ``"12L"``, ``"1,4,15"``, ``"sadness"``,
-        ``{"12": 0.5}`` (see :meth:`ActionUnitLibrary.parse`).
+        What to transfer: ``"12"``, ``"12L"``, ``"1,4,15"``, ``{"12": 0.5}`` (see
+        :meth:`ActionUnitLibrary.parse`), or a whole expression: an emotion's name
+        (``"happiness"``, with the source's scan of that emotion) or ``"all"``, which
+        carry all the motion the source's expressive scan shows.
     magnitude : float or mapping
-        m in [0, 1], or a weight per AU label; finite and within [-2, 2]
+        m in [0, 1], or a weight per field label; finite and within [-2, 2]
         (:data:`~tpscore.expression.action_units.MAX_WEIGHT`); outside [0, 1] it
         extrapolates the expression, with a warning.
     reference : AverageFace, optional
@@ -189,9 +209,21 @@ def transfer(source_neutral: Scan, source_expressive: Scan, target: Scan, action
         landmarks do not allow a step (naming the face: ``source_neutral``,
         ``source_expressive`` or ``target``).
     """
-    clock = time.perf_counter()
-    timings = {}
     faces = {"source_neutral": source_neutral, "source_expressive": source_expressive, "target": target}
+    _check_arguments(faces, options, reference, library)
+    library = library or default_library()
+    activations = library.parse(action_units)
+    reference_face = (reference or load_average_face()).as_normalised_face()
+    method = transfer_method(options, reference_face, library)
+    labels = method.labels(activations)
+    magnitude_weights(magnitude, labels)  # checked here, before the work, and only here
+    clock = _Clock(progress)
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-transfer") as second_thread:
+        animation, model = _stages(method, activations, faces, second_thread, clock)
+    return TransferResult(animation, magnitude, model, clock.timings)
+
+
+def _check_arguments(faces: dict, options, reference, library) -> None:
     for name, face in faces.items():
         if not isinstance(face, (FaceGrid, str, os.PathLike)):
             raise ValueError(f"{name} must be a FaceGrid (read a scan with tpscore.load_scan) or a scan's "
@@ -203,68 +235,68 @@ def transfer(source_neutral: Scan, source_expressive: Scan, target: Scan, action
         raise ValueError(f"reference must be an AverageFace, got {type(reference).__name__}")
     if library is not None and not isinstance(library, ActionUnitLibrary):
         raise ValueError(f"library must be an ActionUnitLibrary, got {type(library).__name__}")
-    # checked before the work, so a bad magnitude fails here and not at .vertices
-    magnitude_weights(magnitude)
     for name, face in faces.items():
         if isinstance(face, FaceGrid):
             _check_face(name, face)
 
-    def lap(stage):
-        nonlocal clock
+
+class _Clock:
+    """The seconds each stage took, and a progress message as each ends."""
+
+    def __init__(self, progress):
+        self.progress = progress
+        self.timings = {}
+        self._last = time.perf_counter()
+
+    def lap(self, stage: str) -> None:
         now = time.perf_counter()
-        timings[stage] = now - clock
-        clock = now
-        if progress is not None and stage in _STAGE_MESSAGES:
-            progress(f"{_STAGE_MESSAGES[stage]} ({timings[stage]:.2f} s)")
+        self.timings[stage] = now - self._last
+        self._last = now
+        if self.progress is not None and stage in _STAGE_MESSAGES:
+            self.progress(f"{_STAGE_MESSAGES[stage]} ({self.timings[stage]:.2f} s)")
 
-    activations = (library or default_library()).parse(action_units)
-    reference_face = (reference or load_average_face()).as_normalised_face()
-    lap("setup")
-    # the published method normalises every scan on its own landmarks by the affine map
-    normalisation = "affine" if options.method == "published" else "similarity"
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-transfer") as second_thread:
-        # what the target and the faces need later does not depend on the source's
-        # motion: a second thread reads and prepares it while this one measures the motion
-        expressive_scan = second_thread.submit(_scan, "source_expressive", source_expressive)
-        target_ready = second_thread.submit(_target_face, target, reference_face.landmarks, normalisation)
-        source_neutral = _scan("source_neutral", source_neutral)
-        source_expressive = expressive_scan.result()
-        if not all(isinstance(face, FaceGrid) for face in faces.values()):
-            lap("read")
-        with _naming("source_neutral"):
-            neutral = normalise_face(source_neutral, reference_face.landmarks, normalisation)
-        lap("normalise")
-        prepared = second_thread.submit(_prepare, neutral, target_ready, activations, options)
-        mirrors = []
 
-        def while_registering():
-            # the mirror planes are needed once the source is registered: fitted on the
-            # second thread while the registration runs on one core (during the texture
-            # tracking before it both cores are busy)
-            if uses_mirror(activations, options):
-                mirrors.append(second_thread.submit(_mirror_planes, (neutral, target_face)))
+def _stages(method, activations, faces: dict, second_thread, clock: _Clock):
+    """The transfer's stages in order on this thread; what depends on one face alone
+    (reading the expressive scan and the target, the source's registration grid, the
+    mirror planes) runs on the second thread ahead of use."""
+    reference_landmarks = method.reference.landmarks
+    clock.lap("setup")
+    expressive_scan = second_thread.submit(_scan, "source_expressive", faces["source_expressive"])
+    target_ready = second_thread.submit(_target_face, faces["target"], reference_landmarks, method.normalisation)
+    neutral_grid = _scan("source_neutral", faces["source_neutral"])
+    expressive_grid = expressive_scan.result()
+    if not all(isinstance(face, FaceGrid) for face in faces.values()):
+        clock.lap("read")
+    with _naming("source_neutral"):
+        neutral = normalise_face(neutral_grid, reference_landmarks, method.normalisation)
+    clock.lap("normalise")
+    prepared = second_thread.submit(_prepare, method, neutral, target_ready, activations)
+    mirrors = []
 
-        with _naming("source_expressive"):
-            if options.method == "published":
-                expressive = normalise_face(source_expressive, reference_face.landmarks, normalisation)
-            else:
-                expressive = align_expressive(neutral, source_neutral, source_expressive,
-                                              [a.action_unit.region for a in activations])
-        lap("align")
-        target_face = target_ready.result()  # read by now; a bad target fails before the long stages
-        model = model_expression(neutral, expressive, activations, reference_face, options, while_registering)
-        lap("model")
-        if model.texture is not None:
-            # the texture tracking ran inside the modelling; report it as its own stage
-            timings["texture"] = model.texture.seconds
-            timings["model"] -= model.texture.seconds
-        animation = animate(model, target_face)
-        lap("animate")
-        prepared.result()
-        for done in mirrors:
-            done.result()
-    magnitude_weights(magnitude, animation.labels)  # a mapping's labels, now that they are known
-    return TransferResult(animation, magnitude, model, timings)
+    def while_registering():
+        # the mirror planes are needed once the source is registered: fitted on the
+        # second thread while the registration runs on one core (during the texture
+        # tracking before it both cores are busy)
+        if method.uses_mirror(activations):
+            mirrors.append(second_thread.submit(_mirror_planes, (neutral, target_ready.result())))
+
+    with _naming("source_expressive"):
+        expressive = method.align(neutral, neutral_grid, expressive_grid, activations)
+    clock.lap("align")
+    target_face = target_ready.result()  # read by now; a bad target fails before the long stages
+    model = method.model(neutral, expressive, activations, while_registering)
+    clock.lap("model")
+    if model.texture is not None:
+        # the texture tracking ran inside the modelling; report it as its own stage
+        clock.timings["texture"] = model.texture.seconds
+        clock.timings["model"] -= model.texture.seconds
+    animation = method.animate(model, target_face)
+    clock.lap("animate")
+    prepared.result()
+    for done in mirrors:
+        done.result()
+    return animation, model
 
 
 def _scan(name: str, scan: Scan) -> FaceGrid:
@@ -281,16 +313,14 @@ def _target_face(target: Scan, reference_landmarks, normalisation: str) -> Norma
         return normalise_face(_scan("target", target), reference_landmarks, normalisation)
 
 
-def _prepare(neutral: NormalisedFace, target: Future, activations, options: TransferOptions) -> None:
+def _prepare(method, neutral: NormalisedFace, target: Future, activations) -> None:
     """What the transfer needs of the two faces alone before the registration, kept with
-    each face: the source's registration grid, then, unless the mirror planes will be
-    fitted (they include it), the target's surface. A ValueError is kept too, or raised
-    again where the transfer uses the result, so errors and warnings come from the same
-    step with or without this."""
-    steps = []
-    if options.method != "published":
-        steps.append(lambda: registration_grid(neutral, options.motion))
-    if not uses_mirror(activations, options):
+    each face: what the method prepares of the source's neutral face, then, unless the
+    mirror planes will be fitted (they include it), the target's surface. A ValueError
+    is kept too, or raised again where the transfer uses the result, so errors and
+    warnings come from the same step with or without this."""
+    steps = [lambda: method.prepare(neutral)]
+    if not method.uses_mirror(activations):
         steps.append(lambda: target.result().surface())
     _quietly(steps)
 

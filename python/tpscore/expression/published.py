@@ -12,10 +12,10 @@ import warnings
 
 import numpy as np
 
-from ..face.landmarks import landmark_index
+from ..face.landmarks import landmark_index, landmark_map
 from ..rbf import TPS
 
-__all__ = ["mouth_width", "mouth_width_ratio", "control_point_warp"]
+__all__ = ["mouth_width", "mouth_width_ratio", "control_point_warp", "model_control_points", "warp_regions"]
 
 
 def mouth_width(landmarks) -> float:
@@ -52,3 +52,46 @@ def control_point_warp(control: np.ndarray, displacement: np.ndarray):
     control points by their displacements."""
     centres, values = _merge_coincident(control, displacement)
     return TPS(centres, centres + values).displacement
+
+
+def model_control_points(source_neutral, source_expressive, activations, reference, place, merge_mm: float):
+    """Each AU's control points on the neutral source and their motion as published:
+    mapped onto the expressive scan by the landmark TPS (neutral -> expressive) and
+    snapped to its nearest vertex. ``place(action_unit)`` gives the points on the
+    reference face. Returns (activation, names, neutral points, motion) per AU."""
+    to_source = landmark_map(reference.landmarks, source_neutral.landmarks, merge_mm=merge_mm,
+                             what="reference -> source")
+    to_expressive = landmark_map(source_neutral.landmarks, source_expressive.landmarks, merge_mm=merge_mm,
+                                 what="source neutral -> expressive")
+    out = []
+    for act in activations:
+        neutral = source_neutral.snap(to_source(place(act.action_unit)), "vertex")
+        motion = source_expressive.snap(to_expressive(neutral), "vertex") - neutral
+        weights = act.action_unit.side_weights(act.side) * act.weight
+        out.append((act, tuple(act.action_unit.names), neutral, motion * weights[:, None]))
+    return out
+
+
+def warp_regions(groups, source_landmarks, target, region_weight, merge_mm: float):
+    """The published animation: each region's control points carried onto the target by
+    the landmark TPS (source -> target, nearest-vertex snap), their motion scaled by the
+    ratio of the mouth widths in the lower face, and each region of the target warped by
+    the TPS through them. ``groups`` maps a region to its list of ControlPointMotion;
+    ``region_weight(region)`` is the region's (H, W) weight on the target grid.
+    Returns labels, fields (n, H, W, 3), control points and moved control points."""
+    to_target = landmark_map(source_landmarks, target.landmarks, merge_mm=merge_mm, what="source -> target")
+    lower_scale = mouth_width_ratio(source_landmarks, target.landmarks)
+    grid = target.grid
+    flat, valid = grid.points.reshape(-1, 3), grid.mask.ravel()
+    labels, fields, controls, moved = [], [], [], []
+    for region, motions in groups.items():
+        control = target.snap(to_target(np.vstack([m.neutral for m in motions])), "vertex")
+        displacement = np.vstack([m.motion for m in motions]) * (lower_scale if region == "lower" else 1.0)
+        weight = region_weight(region)
+        field = np.zeros_like(flat)
+        field[valid] = control_point_warp(control, displacement)(flat[valid]) * weight.ravel()[valid, None]
+        labels.append("+".join(m.activation.label for m in motions))
+        fields.append(field.reshape(grid.points.shape))
+        controls.append(control)
+        moved.append(control + displacement)
+    return labels, np.stack(fields), controls, moved

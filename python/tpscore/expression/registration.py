@@ -48,7 +48,7 @@ from ..spatial import MeshSurface
 from .landmark_pairs import landmark_term
 
 __all__ = ["MotionOptions", "DenseMotion", "RegistrationGrid", "prepare_registration", "register_surfaces",
-           "grid_normals", "rest_pull_per_node"]
+           "grid_normals", "rest_pull_per_node", "soft_pairs"]
 
 #: Pairs farther than this many robust scales from their target do not pull.
 TUKEY_FACTOR = 3.0
@@ -145,6 +145,17 @@ class DenseMotion:
         ok = np.isfinite(p).all(axis=1)
         out[ok] = self.lattice.evaluate(p[ok, :2], self.node_values)
         return out
+
+
+def soft_pairs(lattice: BSplineLattice, from_points, to_points, weights):
+    """The normal-equation term (3 n_nodes x 3 n_nodes, component blocks [x; y; z]) and
+    right-hand side (n_nodes, 3) of soft pairs: sum_k w_k |u(f_k) - (t_k - f_k)|^2."""
+    from_points = np.asarray(from_points, dtype=np.float64).reshape(-1, 3)
+    weights = np.asarray(weights, dtype=np.float64).reshape(-1)
+    basis = lattice.basis(from_points[:, :2])
+    gram = basis.T @ basis.multiply(weights[:, None])
+    pull = (np.asarray(to_points, dtype=np.float64).reshape(-1, 3) - from_points) * weights[:, None]
+    return sp.block_diag([gram] * 3, format="csr"), basis.T @ pull
 
 
 def grid_normals(points) -> np.ndarray:
@@ -267,7 +278,7 @@ def prepare_registration(neutral_points, neutral_mask, options: MotionOptions = 
 
 def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressive_surface: MeshSurface,
                       expressive_landmarks, options: MotionOptions = MotionOptions(), weight=None,
-                      texture=None, prepared: RegistrationGrid | None = None) -> DenseMotion:
+                      texture=None, prepared: RegistrationGrid | None = None, pairs=None) -> DenseMotion:
     """Register a neutral face grid onto an expressive surface of the same person.
 
     Parameters
@@ -290,6 +301,9 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     prepared : RegistrationGrid, optional
         :func:`prepare_registration` of these neutral points, mask and options, if
         already made.
+    pairs : (from_points, to_points, weights), optional
+        More soft pairs, like the landmarks' (k, 3), (k, 3) and (k,): e.g. where the
+        rims of an opening went (:mod:`tpscore.expression.cut_motion`).
 
     Returns
     -------
@@ -305,6 +319,9 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     # the terms that do not change over the iterations, in the system's pattern
     landmarks, landmark_rhs = landmark_term(lattice, points, mask, neutral_landmarks, expressive_landmarks,
                                             expressive_surface, options.landmark_weight, texture)
+    if pairs is not None:
+        pair_matrix, pair_rhs = soft_pairs(lattice, *pairs)
+        landmarks, landmark_rhs = landmarks + pair_matrix, landmark_rhs + pair_rhs
     fixed_values = system.aligned(landmarks + sp.block_diag([sp.diags(_RIDGE + prepared.rest, format="csr")] * 3))
     bending_values = prepared.bending_values
     if texture is not None:

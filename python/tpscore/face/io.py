@@ -351,11 +351,18 @@ def write_bnt(path, scan: BntScan) -> None:
 
 # --------------------------------------------------------------------------- .lm3
 
+#: Landmarks a Bosphorus ``.lm3`` file may list beyond the 22: read past, not kept.
+IGNORED_LM3_NAMES = ("Left ear lobe", "Right ear lobe")
+_IGNORED_LM3 = {name.lower() for name in IGNORED_LM3_NAMES}
+
+
 def read_lm3(path, *, return_names: bool = False):
     """Read a Bosphorus ``.lm3`` landmark file.
 
     Format: a header line; an empty line (or a line ``*`` followed by free text up to
     an empty line); ``<N> landmarks:``; then N pairs of lines: the name, ``x y z``.
+    The database labels up to 24 landmarks: the 22 and the two ear lobes
+    (:data:`IGNORED_LM3_NAMES`), which are read past and not kept.
 
     Parameters
     ----------
@@ -400,11 +407,13 @@ def read_lm3(path, *, return_names: bool = False):
     if len(count_words) != 2 or count_words[1].lower() != "landmarks:" or not count_words[0].isdigit():
         fail(k, f"expected '<N> landmarks:', got {lines[k][:80]!r}")
     count = int(count_words[0])
-    if count > N_LANDMARKS:
-        fail(k, f"announces {count} landmarks; Bosphorus has {N_LANDMARKS}")
+    if count > N_LANDMARKS + len(IGNORED_LM3_NAMES):
+        fail(k, f"announces {count} landmarks; Bosphorus has {N_LANDMARKS + len(IGNORED_LM3_NAMES)} "
+                f"({N_LANDMARKS} and the {' and '.join(IGNORED_LM3_NAMES)})")
     k += 1
     landmarks = empty_landmarks()
     names: list[str] = []
+    ignored: set[str] = set()
     for _ in range(count):
         if k + 1 >= len(lines) or not lines[k].strip():
             raise ValueError(
@@ -412,6 +421,12 @@ def read_lm3(path, *, return_names: bool = False):
                 f"(ends at line {min(k, len(lines)) + 1})"
             )
         name = lines[k].strip()
+        if name.lower() in _IGNORED_LM3:
+            if name.lower() in ignored:
+                fail(k, f"duplicate landmark {name!r}")
+            ignored.add(name.lower())
+            k += 2
+            continue
         try:
             index = landmark_index(name)
         except ValueError:

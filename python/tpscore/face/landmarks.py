@@ -207,8 +207,9 @@ def _merge_close(lm: np.ndarray, other: np.ndarray, merge_mm: float):
 
 
 def landmark_map(from_landmarks, to_landmarks, *, smoothing: float = 0.0,
-                 merge_mm: float = 0.0, what: str = "landmark map") -> TPS:
-    """The TPS taking one face's landmarks onto another's, over the landmarks both have.
+                 merge_mm: float = 0.0, what: str = "landmark map", extra=None) -> TPS:
+    """The TPS taking one face's landmarks onto another's, over the landmarks both have
+    (and ``extra``, further corresponding points (k, 3) and (k, 3), when given).
 
     Raises a ValueError that says how many landmarks remain when fewer than five are
     present in both faces (a 3D TPS needs five non-coplanar pairs).
@@ -224,4 +225,24 @@ def landmark_map(from_landmarks, to_landmarks, *, smoothing: float = 0.0,
             f"{what}: only {len(src)} landmark(s) are present in both faces; "
             f"at least {MIN_LANDMARKS} are needed"
         )
+    if extra is not None and len(extra[0]):
+        src, dst = _with_extra(src, dst, np.asarray(extra[0], dtype=np.float64), np.asarray(extra[1], dtype=np.float64))
     return TPS(src, dst, smoothing=smoothing)
+
+
+#: An extra pair of :func:`landmark_map` is kept only this far (mm) from every centre
+#: already kept, in both faces: nearly coinciding centres would fold the map.
+EXTRA_SPACING_MM = 1.5
+
+
+def _with_extra(src, dst, more_src, more_dst):
+    """The centres with the extra pairs that keep their distance (greedy, in order)."""
+    keep_src, keep_dst = list(src), list(dst)
+    for a, b in zip(more_src, more_dst):
+        if not (np.isfinite(a).all() and np.isfinite(b).all()):
+            continue
+        if (np.linalg.norm(np.asarray(keep_src) - a, axis=1).min() > EXTRA_SPACING_MM
+                and np.linalg.norm(np.asarray(keep_dst) - b, axis=1).min() > EXTRA_SPACING_MM):
+            keep_src.append(a)
+            keep_dst.append(b)
+    return np.array(keep_src), np.array(keep_dst)

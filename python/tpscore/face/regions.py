@@ -1,4 +1,5 @@
-"""Upper and lower face regions, defined from landmarks.
+"""Regions of the face, defined from landmarks: the upper and lower face, and named
+parts finer than those (:class:`Region`).
 
 The boundary is the straight line through the eye corners, fitted by least squares
 to the four eye corners present (in the x-y plane of the normalised frame, where the
@@ -13,12 +14,17 @@ with a smooth (C1) ramp, so a region's warp fades out instead of stopping at a s
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from .landmarks import landmark_index
+from .landmarks import AnchoredPoint, landmark_index
 
 __all__ = ["region_boundary", "upper_face_weight", "region_weight", "midline_x", "side_weight",
-           "smoothstep"]
+           "smoothstep", "Region", "HALVES"]
+
+#: The two halves of the face the eye line separates.
+HALVES = ("upper", "lower")
 
 _EYE_CORNERS = ("Outer left eye corner", "Inner left eye corner",
                 "Inner right eye corner", "Outer right eye corner")
@@ -106,3 +112,97 @@ def side_weight(side: str | None, points, landmarks, transition_mm: float = 0.0)
     if transition_mm <= 0:
         return (across > 0).astype(np.float64)
     return smoothstep(-0.5 * transition_mm, 0.5 * transition_mm, across)
+
+
+@dataclass(frozen=True)
+class Region:
+    """A named part of the face where an action unit acts, finer than the upper and
+    lower face: a union of polygons whose corners are anchored points (weighted means
+    of landmarks plus an x, y offset, as control points are), with a soft edge.
+
+    Its weight at a point is 1 inside a polygon and falls smoothly (C1) to 0 at
+    ``margin_mm`` outside it, measured in the x-y plane of the frame the landmarks are
+    in (a normalised face looks toward +z).
+
+    Attributes
+    ----------
+    name : str
+    polygons : tuple of tuple of AnchoredPoint
+        Each polygon's corners in order (at least three).
+    margin_mm : float
+    description : str
+    """
+
+    name: str
+    polygons: tuple
+    margin_mm: float = 5.0
+    description: str = ""
+
+    def __post_init__(self):
+        if not self.polygons:
+            raise ValueError(f"region {self.name!r}: needs at least one polygon")
+        for polygon in self.polygons:
+            if len(polygon) < 3:
+                raise ValueError(f"region {self.name!r}: a polygon needs at least three corners")
+        if not np.isfinite(self.margin_mm) or self.margin_mm < 0:
+            raise ValueError(f"region {self.name!r}: margin_mm must be finite and >= 0, got {self.margin_mm!r}")
+        object.__setattr__(self, "polygons", tuple(tuple(p) for p in self.polygons))
+
+    def corners(self, landmarks) -> list[np.ndarray]:
+        """Each polygon's (k, 2) corners on a face with these landmarks."""
+        return [np.array([corner.position_xy(landmarks) for corner in polygon]) for polygon in self.polygons]
+
+    def weight(self, points, landmarks) -> np.ndarray:
+        """Weight in [0, 1] at points (..., >=2); NaN points get 0."""
+        p = np.asarray(points, dtype=np.float64)
+        flat = p.reshape(-1, p.shape[-1])[:, :2]
+        finite = np.isfinite(flat).all(axis=1)
+        best = np.zeros(len(flat))
+        for corners in self.corners(landmarks):
+            inside = _inside(flat[finite], corners)
+            distance = np.where(inside, 0.0, _distance_to_outline(flat[finite], corners))
+            if self.margin_mm > 0:
+                w = smoothstep(self.margin_mm, 0.0, distance)
+            else:
+                w = inside.astype(np.float64)
+            best[finite] = np.maximum(best[finite], w)
+        return best.reshape(p.shape[:-1])
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "description": self.description, "margin_mm": self.margin_mm,
+                "polygons": [[{"at": dict(c.at), "offset_mm": list(c.offset_mm)} for c in polygon]
+                             for polygon in self.polygons]}
+
+    @classmethod
+    def from_dict(cls, data) -> "Region":
+        try:
+            name = str(data["name"])
+            polygons = tuple(
+                tuple(AnchoredPoint(name=f"{name} corner {k}", side="centre", at=c["at"],
+                                    offset_mm=tuple(c.get("offset_mm", (0.0, 0.0)))) for k, c in enumerate(polygon))
+                for polygon in data["polygons"])
+            return cls(name, polygons, float(data.get("margin_mm", 5.0)), str(data.get("description", "")))
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"region entry {str(data)[:60]!r} is malformed: {exc}") from None
+
+
+def _inside(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """Even-odd rule for (m, 2) points in a (k, 2) polygon."""
+    inside = np.zeros(len(points), dtype=bool)
+    x, y = points[:, 0], points[:, 1]
+    for (x1, y1), (x2, y2) in zip(polygon, np.roll(polygon, -1, axis=0)):
+        crosses = (y1 > y) != (y2 > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            at = x1 + (y - y1) * (x2 - x1) / (y2 - y1)
+        inside ^= crosses & (x < at)
+    return inside
+
+
+def _distance_to_outline(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """Distance of (m, 2) points to the outline of a (k, 2) polygon."""
+    best = np.full(len(points), np.inf)
+    for a, b in zip(polygon, np.roll(polygon, -1, axis=0)):
+        edge = b - a
+        t = np.clip(((points - a) @ edge) / max(float(edge @ edge), 1e-12), 0.0, 1.0)
+        best = np.minimum(best, np.linalg.norm(points - (a + t[:, None] * edge), axis=1))
+    return best

@@ -1,0 +1,136 @@
+"""The face's openings and the motion cut at them: the mouth that opens, the eyes that
+close (on the demo's faces, which have eye openings and lips that part)."""
+import numpy as np
+import pytest
+
+import tpscore
+from tpscore.demo_faces import make_demo_scan
+from tpscore.expression import CutMotion
+from tpscore.expression.cut_motion import moved_openings
+from tpscore.expression.modelling import openings
+from tpscore.face.grid import load_scan
+from tpscore.face.landmarks import landmark_index
+from tpscore.face.openings import find_openings, opening_cut, opening_sides
+
+SCAN = dict(noise_mm=0.1, holes=0, pose_deg=3.0, landmark_noise_mm=0.3)
+SURPRISE = {"1": 1.0, "2": 1.0, "5": 1.0, "26": 0.4}
+
+
+@pytest.fixture(scope="module")
+def scans(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("openings")
+    made = {}
+    for name, person, expression, seed in (("source", 0, None, 1), ("surprise", 0, SURPRISE, 2),
+                                           ("closed", 0, {"43": 1.0}, 3), ("target", 1, None, 4),
+                                           ("target_surprise", 1, SURPRISE, 5), ("target_closed", 1, {"43": 1.0}, 6)):
+        scan = make_demo_scan(person, expression, seed=seed, **SCAN)
+        made[name] = (scan, load_scan(scan.write(folder, name)))
+    return made
+
+
+def _normalised(grid):
+    reference = tpscore.load_average_face().as_normalised_face()
+    return tpscore.normalise_face(grid, reference.landmarks)
+
+
+def test_a_neutral_face_has_open_eyes_and_closed_lips(scans):
+    face = _normalised(scans["source"][1])
+    found = find_openings(face)
+    assert set(found) == {"right eye", "left eye", "mouth"}
+    for eye in ("right eye", "left eye"):
+        assert 3.0 < found[eye].open_mm() < 15.0   # the scan shows the eye as a hole
+        assert found[eye].corners[0, 0] < found[eye].corners[1, 0]
+    mouth = found["mouth"]
+    assert mouth.open_mm() == 0.0                  # closed lips: a contact line, no hole
+    # the line runs between the inner-lip landmarks (within a millimetre or two of them)
+    inner = face.landmarks[[landmark_index("Upper lip inner middle"), landmark_index("Lower lip inner middle")]]
+    a, b = mouth.coordinates(inner.mean(axis=0))
+    assert abs(b - mouth.line_at(a)) < 2.0
+
+
+def test_the_opened_mouth_and_the_closed_eyes_are_seen_as_moved(scans):
+    neutral = _normalised(scans["source"][1])
+    for name, moved_names in (("surprise", {"mouth"}), ("closed", {"right eye", "left eye"})):
+        expressive = tpscore.expression.modelling.align_expressive(neutral, scans["source"][1], scans[name][1])
+        moved = {o.name for o in moved_openings(openings(neutral), expressive.grid)}
+        assert moved_names <= moved, name
+        if name == "closed":
+            assert "mouth" not in moved
+    # an expression that leaves the openings as they are cuts nothing
+    smile = make_demo_scan(0, {"12": 1.0}, seed=7, **SCAN)
+    import tempfile
+    with tempfile.TemporaryDirectory() as folder:
+        grid = load_scan(smile.write(folder, "smile"))
+    expressive = tpscore.expression.modelling.align_expressive(neutral, scans["source"][1], grid)
+    assert moved_openings(openings(neutral), expressive.grid) == []
+
+
+def test_sides_split_at_the_line_and_agree_far_from_it(scans):
+    face = _normalised(scans["source"][1])
+    mouth = find_openings(face)["mouth"]
+    middle = mouth.points_at(0.5, mouth.line_at(0.5))
+    above, below = np.append(middle + [0, 2.0], 0.0), np.append(middle - [0, 2.0], 0.0)
+    far = np.append(middle + [0, 80.0], 0.0)
+    share = opening_sides([mouth], np.array([above, below, far]))
+    assert share.tolist() == [1.0, 0.0, 0.5]
+    beyond = np.append(mouth.points_at(1.3, 0.0), 0.0)
+    cut = opening_cut([mouth], np.array([above, below, beyond]))
+    assert cut.tolist() == [1, -1, 0]             # the cut ends at the corners
+
+
+def test_an_open_mouth_is_carried_with_the_lips_apart_and_an_opening_in_the_mesh(scans):
+    (source, a), (_, b), (target, c) = scans["source"], scans["surprise"], scans["target"]
+    result = tpscore.transfer(a, b, c, "surprise")
+    assert isinstance(result.model.dense, CutMotion)
+    lm = result.target.grid.landmark_vertices
+    field = result.field_in_scan().reshape(-1, 3)
+    upper = field[lm[landmark_index("Upper lip outer middle")]]
+    lower = field[lm[landmark_index("Lower lip outer middle")]]
+    assert lower[1] < -6.0 and abs(upper[1]) < 2.0      # the jaw drops, the upper lip stays
+    truth = target.true_positions(result.neutral[result.mask], SURPRISE)
+    moving = np.linalg.norm(truth - result.neutral[result.mask], axis=1) > 0.5
+    error = np.linalg.norm(result.vertices[result.mask] - truth, axis=1)
+    noop = np.linalg.norm(truth - result.neutral[result.mask], axis=1)
+    assert np.sqrt(np.mean(error[moving] ** 2)) < 0.4 * np.sqrt(np.mean(noop[moving] ** 2))
+    # the result's mesh is open between the lips: no triangle joins the two sides
+    torn = len(result.target.grid.triangles()) - len(result.triangles())
+    assert torn > 20
+    side = result.animation.cut.reshape(-1)[result.triangles()]
+    assert not ((side.min(axis=1) < 0) & (side.max(axis=1) > 0)).any()
+    assert len(result.mesh().faces) == len(result.triangles())
+
+
+def test_closed_eyes_are_carried_by_moving_the_upper_lids_down(scans):
+    (_, a), (_, b), (target, c) = scans["source"], scans["closed"], scans["target"]
+    result = tpscore.transfer(a, b, c, "43")
+    assert isinstance(result.model.dense, CutMotion)
+    truth = target.true_positions(result.neutral[result.mask], {"43": 1.0})
+    motion = truth - result.neutral[result.mask]
+    predicted = (result.vertices - result.neutral)[result.mask]
+    lids = np.linalg.norm(motion, axis=1) > 2.0         # the upper lids, which move most
+    assert lids.sum() > 20
+    # most of the lids' downward travel is carried, and nothing moves far from the eyes
+    assert np.median(predicted[lids, 1] / motion[lids, 1]) > 0.5
+    still = np.linalg.norm(motion, axis=1) < 0.2
+    assert np.sqrt(np.mean(np.sum(predicted[still] ** 2, axis=1))) < 0.3
+
+
+def test_whole_expressions_carry_all_the_measured_motion(scans):
+    (_, a), (_, b), (target, c) = scans["source"], scans["surprise"], scans["target"]
+    whole = tpscore.transfer(a, b, c, "all")
+    assert whole.animation.labels == ["all"]
+    truth = target.true_positions(whole.neutral[whole.mask], SURPRISE)
+    moving = np.linalg.norm(truth - whole.neutral[whole.mask], axis=1) > 0.5
+    # brows (upper face) and jaw (lower face) both move: no region is cut away
+    error = np.linalg.norm(whole.vertices[whole.mask] - truth, axis=1)
+    noop = np.linalg.norm(truth - whole.neutral[whole.mask], axis=1)
+    assert np.sqrt(np.mean(error[moving] ** 2)) < 0.4 * np.sqrt(np.mean(noop[moving] ** 2))
+    # the brows alone (AU1+2, upper face) leave the jaw where it was
+    brows = tpscore.transfer(a, b, c, "1,2")
+    chin = whole.target.grid.landmark_vertices[landmark_index("Chin middle")]
+    assert abs(brows.field_in_scan().reshape(-1, 3)[chin][1]) < 1.0 < abs(whole.field_in_scan().reshape(-1, 3)[chin][1])
+    # the method as published animates an emotion's recipe and has no "all"
+    published = tpscore.transfer(a, b, c, "surprise", options=tpscore.TransferOptions.published())
+    assert set("+".join(published.animation.labels).split("+")) == {"AU1", "AU2", "AU5", "AU26"}
+    with pytest.raises(ValueError, match="no recipe"):
+        tpscore.transfer(a, b, c, "all", options=tpscore.TransferOptions.published())
