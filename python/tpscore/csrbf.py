@@ -155,6 +155,10 @@ class CSRBF:
             if np.any(lengths == 0):
                 raise ValueError(f"normals has zero-length rows (first at row {np.flatnonzero(lengths == 0)[0]})")
 
+        # the inputs, as given, for pickling (the fit is deterministic: a refit gives the
+        # same coefficients to the bit with the same build)
+        self._inputs = (np.array(centres), np.array(values[:, 0] if self._one_dimensional else values),
+                        None if normals is None else np.array(normals_array))
         self._support = support
         self._quadric = bool(quadric)
         self._smoothing = smoothing
@@ -176,6 +180,17 @@ class CSRBF:
                 f"residuals {self._residuals[failed].tolist()} after {self._iterations[failed].tolist()} "
                 f"iterations (tolerance {tolerance:g}, max_iterations {max_iterations}); raise "
                 f"max_iterations, loosen tolerance, use preconditioner='ilu' or add smoothing")
+
+    def __reduce__(self):
+        centres, values, normals = self._inputs
+        return _refit, (centres, values, self._support, normals, self._quadric, self._smoothing,
+                        self._preconditioner, self._tolerance, self._max_iterations)
+
+    def __copy__(self):
+        return self  # immutable
+
+    def __deepcopy__(self, memo):
+        return self
 
     def __call__(self, points) -> np.ndarray:
         """Evaluate the field.
@@ -234,3 +249,9 @@ class CSRBF:
     def __repr__(self) -> str:
         return (f"CSRBF(n={len(self._coefficients)}, k={self._coefficients.shape[1]}, "
                 f"support={self._support:g}, quadric={self._quadric}, nnz={self.nnz})")
+
+
+def _refit(centres, values, support, normals, quadric, smoothing, preconditioner, tolerance, max_iterations):
+    """A fitted CSRBF from its inputs: what unpickling calls."""
+    return CSRBF(centres, values, support, normals=normals, quadric=quadric, smoothing=smoothing,
+                 preconditioner=preconditioner, tolerance=tolerance, max_iterations=max_iterations)

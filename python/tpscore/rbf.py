@@ -239,7 +239,7 @@ class RBF:
     the GIL, so several threads may evaluate it at once.
     """
 
-    __slots__ = ("_model", "_kernel", "_n_values", "_arrays")
+    __slots__ = ("_model", "_kernel", "_n_values", "_arrays", "_inputs")
 
     def __init__(self, centres, values, kernel: str = "tps", *, smoothing: float = 0.0,
                  epsilon: float | None = None):
@@ -265,6 +265,17 @@ class RBF:
                              f"{values_array.shape}")
         self._fit(centres_array, values_array, kernel, smoothing_value, epsilon_value)
 
+    def __reduce__(self):
+        # the fit is deterministic: refitting the same inputs with the same build gives
+        # the same model, to the bit (a pickle ships the inputs, not the compiled object)
+        return _refit, (type(self), *self._inputs)
+
+    def __copy__(self):
+        return self  # immutable: a copy is the object itself
+
+    def __deepcopy__(self, memo):
+        return self
+
     def _fit(self, centres: np.ndarray, values: np.ndarray, kernel: str, smoothing: float,
              epsilon: float) -> None:
         """Fit validated, C-contiguous float64 centres (n, 3) and values (n, k)."""
@@ -288,6 +299,7 @@ class RBF:
         # that is only evaluated (the usual TPS warp) never needs them, and the three
         # copies were a sixth of a 100-centre fit.
         setter(self, "_arrays", {})
+        setter(self, "_inputs", (_read_only(centres.copy()), _read_only(values.copy()), kernel, smoothing, epsilon))
 
     def _array(self, name: str) -> np.ndarray:
         array = self._arrays.get(name)
@@ -445,6 +457,13 @@ class RBF:
         return (f"{type(self).__name__}(kernel={self._kernel!r}, centres={self._model.size}, "
                 f"values={self._n_values}, smoothing={self.smoothing:g}{extra}, "
                 f"condition_number={self.condition_number:.3g})")
+
+
+def _refit(cls, centres, values, kernel, smoothing, epsilon):
+    """A fitted RBF (or TPS) from its validated inputs: what unpickling calls."""
+    fitted = object.__new__(cls)
+    fitted._fit(np.ascontiguousarray(centres), np.ascontiguousarray(values), kernel, smoothing, epsilon)
+    return fitted
 
 
 class TPS(RBF):

@@ -125,6 +125,7 @@ class SparseCholesky:
         # NaN would make every comparison false and switch the symmetry check off.
         tolerance = as_positive(symmetry_tolerance, "symmetry_tolerance", allow_zero=True)
         lower = _as_symmetric_csc_lower(matrix, "matrix", tolerance)
+        self._lower = lower  # kept for pickling: a refactorisation gives the same factor
         self._n = lower.shape[0]
         self._factor = _factorise(lambda: _core.SparseCholesky(
             self._n,
@@ -133,6 +134,15 @@ class SparseCholesky:
             np.ascontiguousarray(lower.data, dtype=np.float64),
             _PIVOT_TOLERANCE,
         ), lambda: lower, "matrix")
+
+    def __reduce__(self):
+        return _refactorise, (self._lower,)
+
+    def __copy__(self):
+        return self  # immutable
+
+    def __deepcopy__(self, memo):
+        return self
 
     @property
     def n(self) -> int:
@@ -402,3 +412,8 @@ def grid_nested_dissection(shape, reach: int = 1) -> np.ndarray:
 
     dissect(index)
     return np.concatenate(order) if order else np.zeros(0, dtype=np.int64)
+
+
+def _refactorise(lower):
+    """A SparseCholesky of the lower triangle it was made from: what unpickling calls."""
+    return SparseCholesky(lower + sp.tril(lower, -1).T)

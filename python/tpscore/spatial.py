@@ -94,6 +94,16 @@ class KDTree:
         self._points = points
         self._tree = _core.KDTree(points, self._leaf_size)
 
+    def __reduce__(self):
+        # the tree is rebuilt from its points: the same build gives the same tree
+        return KDTree, (self._points, self._leaf_size)
+
+    def __copy__(self):
+        return self  # immutable
+
+    def __deepcopy__(self, memo):
+        return self
+
     @property
     def points(self) -> np.ndarray:
         """The indexed points, (n, 3) float64, read-only."""
@@ -282,6 +292,15 @@ class MeshSurface:
         self._vertices = vertices
         self._faces = faces
         self._surface = _core.MeshSurface(vertices, faces)
+
+    def __reduce__(self):
+        return MeshSurface, (self._vertices, self._faces)
+
+    def __copy__(self):
+        return self  # immutable
+
+    def __deepcopy__(self, memo):
+        return self
 
     @property
     def vertices(self) -> np.ndarray:

@@ -164,6 +164,13 @@ class TextureMatches:
     seconds: float
     _tracker: "_Tracker | None" = field(default=None, repr=False)
 
+    def __getstate__(self):
+        # the tracker (the two rendered views and the flow) is not pickled: unpickled
+        # matches cannot be refined
+        state = dict(self.__dict__)
+        state["_tracker"] = None
+        return state
+
     def refined(self, displacement) -> "TextureMatches":
         """The matches found again with the expressive image warped back by a motion
         estimate, so that the flow only has to find what the estimate missed (large,

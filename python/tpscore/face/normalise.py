@@ -170,6 +170,15 @@ class NormalisedFace:
     def landmarks(self) -> np.ndarray:
         return self.grid.landmarks
 
+    def __getstate__(self):
+        # what was derived is made again on first use after unpickling; a lock is not
+        # pickled
+        return {"grid": self.grid, "transform": self.transform}
+
+    def __setstate__(self, state):
+        self.grid, self.transform = state["grid"], state["transform"]
+        self._derived, self._lock = {}, threading.RLock()
+
     def derived(self, name, compute):
         """``compute(self)``, computed once per ``name`` (hashable; a ValueError it raised is
         raised again on every later call); the threads that ask meanwhile wait for it."""
