@@ -20,8 +20,23 @@ $(VENV)/.installed: $(VENV)/bin/python $(SOURCES)
 
 install: $(VENV)/.installed
 
+# The kernels pick their instruction set at import (AVX-512, AVX2 or the x86-64
+# baseline, lowered by TPSCORE_SIMD): after the whole suite, the kernel tests run again
+# under each lower set this CPU has, the AVX2 run with NumPy's own AVX-512 paths off as
+# on a CPU without them, so a developer on any CPU exercises every kernel path.
+KERNEL_TESTS ?= tests/test_rbf.py tests/test_csrbf.py tests/test_spatial.py tests/test_mesh.py \
+	tests/test_sparse.py tests/test_raster.py tests/test_skin_sim.py tests/test_motion.py tests/test_pickling.py
+NUMPY_WITHOUT_AVX512 := AVX512F AVX512CD AVX512_SKX AVX512_CLX AVX512_CNL AVX512_ICL AVX512_SPR
+LOWER_SIMD = $(PY) -c "from tpscore import _core; order = ['avx512', 'avx2', 'baseline']; \
+	print(' '.join(order[order.index(_core.simd_level()) + 1:]))"
+
 test: install
 	$(PY) -m pytest tests -q
+	@for level in $$($(LOWER_SIMD)); do \
+		echo "kernel tests with TPSCORE_SIMD=$$level"; \
+		TPSCORE_SIMD=$$level NPY_DISABLE_CPU_FEATURES="$(NUMPY_WITHOUT_AVX512)" \
+			$(PY) -m pytest $(KERNEL_TESTS) -q -p no:cacheprovider || exit 1; \
+	done
 
 demo: install
 	$(VENV)/bin/tpscore demo --out demo-output
