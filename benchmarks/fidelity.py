@@ -40,9 +40,19 @@ from tpscore.batch import TransferJob
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = Path(__file__).resolve().parent
+#: The AUs the benchmark has measured from the start (request -> scan code).
 AU_CODES = {"1": "UFAU_1_0", "2": "UFAU_2_0", "4": "UFAU_4_0", "12": "LFAU_12_0",
             "12L": "LFAU_12L_0", "14": "LFAU_14_0", "15": "LFAU_15_0", "17": "LFAU_17_0",
             "20": "LFAU_20_0"}
+#: The rest of the database's codes the scan generator writes (--expressions bosphorus),
+#: each transferred with its own request: an AU code, or an emotion's name (a whole
+#: expression).
+MORE_CODES = {"6": "UFAU_6_0", "9": "LFAU_9_0", "10": "LFAU_10_0", "16": "LFAU_16_0", "18": "LFAU_18_0",
+              "22": "LFAU_22_0", "23": "LFAU_23_0", "24": "LFAU_24_0", "25": "LFAU_25_0", "26": "LFAU_26_0",
+              "27": "LFAU_27_0", "28": "LFAU_28_0", "34": "LFAU_34_0", "43": "UFAU_43_0", "44": "UFAU_44_0",
+              "happiness": "E_HAPPY_0", "sadness": "E_SADNESS_0", "surprise": "E_SURPRISE_0",
+              "fear": "E_FEAR_0", "anger": "E_ANGER_0", "disgust": "E_DISGUST_0"}
+CODES = {**AU_CODES, **MORE_CODES}
 
 
 # The score of each pair in fidelity.json, under the reference scorer's names.
@@ -122,7 +132,8 @@ def main(argv=None) -> int:
     ap.add_argument("--subjects", default="0-19")
     ap.add_argument("--offsets", type=int, nargs="+", default=[1, 2],
                     help="target = (source + offset) mod n for each offset: n pairs per offset")
-    ap.add_argument("--aus", nargs="+", default=list(AU_CODES))
+    ap.add_argument("--aus", nargs="+", default=list(CODES),
+                    help="requests to transfer (default every code: " + ", ".join(CODES) + ")")
     ap.add_argument("--variants", nargs="+", default=["noop", "published", "default", "geometry-only"],
                     help="noop, published, default, geometry-only, expressive-without-image, a part "
                          "of the default undone (see the variants table in the code), or a texture "
@@ -160,7 +171,8 @@ def main(argv=None) -> int:
     scan_args = args.scan_args.split()
     scans = out / ("scans" + "".join(scan_args).replace("--", "_"))
     subjects = parse_subjects(args.subjects)
-    ensure_scans(shared, scans, subjects, scan_args)
+    ensure_scans(shared, scans, subjects, scan_args,
+                 codes=["N_N_0", *(CODES[a] for a in args.aus)] if set(args.aus) - set(AU_CODES) else None)
 
     default = TransferOptions()
     variants = {
@@ -211,9 +223,9 @@ def main(argv=None) -> int:
         return f"{variant}__AU{au}__o{offset}__bs{source:03d}__bs{target:03d}"
 
     jobs = [FidelityJob(job_name(variant, au, offset, source, target),
-                        f"{scan_path(scans, source, 'N_N_0')}.bnt", f"{scan_path(scans, source, AU_CODES[au])}.bnt",
+                        f"{scan_path(scans, source, 'N_N_0')}.bnt", f"{scan_path(scans, source, CODES[au])}.bnt",
                         f"{scan_path(scans, target, 'N_N_0')}.bnt", au, options=variants[variant],
-                        truth=f"{scan_path(scans, target, AU_CODES[au])}.bnt", save=False, variant=variant,
+                        truth=f"{scan_path(scans, target, CODES[au])}.bnt", save=False, variant=variant,
                         withheld=tuple(sorted(withheld.get(variant, ()))))
             for au, offset, source, target in pairs for variant in transfers]
     stem = "fidelity" + "".join(scan_args).replace("--", "_")
@@ -247,7 +259,7 @@ def main(argv=None) -> int:
 
     results = defaultdict(list)  # (variant, au) -> list of score dicts
     for au in args.aus:
-        code = AU_CODES[au]
+        code = CODES[au]
         for offset in args.offsets:
             for i, source in enumerate(subjects):
                 target = subjects[(i + offset) % n]
@@ -329,7 +341,8 @@ def registration_alone(tpscore, score_with_sidecars, faces, scans, subjects, aus
     """Rows scoring the registration alone: each subject's neutral grid moved by its
     registered field (mirror-averaged as the transfer does) against its own expressive
     scan, with the scans' images and with them withheld."""
-    from tpscore.expression import modelling
+    from tpscore import TransferOptions
+    from tpscore.expression import transfer_method
 
     reference = tpscore.load_average_face().as_normalised_face()
     library = tpscore.default_library()
@@ -341,21 +354,19 @@ def registration_alone(tpscore, score_with_sidecars, faces, scans, subjects, aus
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
                     scans_of = [tpscore.load_scan(str(scan_path(scans, subject, code)) + ".bnt")
-                                for code in ("N_N_0", AU_CODES[au])]
+                                for code in ("N_N_0", CODES[au])]
                     if not with_texture:
                         scans_of = [replace(g, image=None) for g in scans_of]
                     activations = library.parse(au)
+                    method = transfer_method(TransferOptions(), reference, library)
                     neutral = tpscore.normalise_face(scans_of[0], reference.landmarks)
-                    expressive = modelling.align_expressive(neutral, scans_of[0], scans_of[1],
-                                                     [a.action_unit.region for a in activations])
-                    field = modelling.dense_motion(neutral, expressive)
-                    if all(a.side is None for a in activations):
-                        field = modelling.mirrored(field, neutral)
+                    expressive = method.align(neutral, scans_of[0], scans_of[1], activations)
+                    field = method.model(neutral, expressive, activations).dense
                 points = neutral.grid.points.reshape(-1, 3)
                 predicted = neutral.transform.apply_inverse(points + field(points)).reshape(neutral.grid.points.shape)
                 score = score_with_sidecars(predicted, neutral.transform.apply_inverse(neutral.grid.points),
                                             neutral.grid.mask, str(scan_path(scans, subject, "N_N_0")) + "_gt.npz",
-                                            str(scan_path(scans, subject, AU_CODES[au])) + "_gt.npz", faces)
+                                            str(scan_path(scans, subject, CODES[au])) + "_gt.npz", faces)
                 ratios.append(score["residual_ratio"])
                 leaks.append(score["leak_mm"])
             rows[(with_texture, au)] = (np.mean(ratios), np.mean(leaks))

@@ -49,8 +49,13 @@ def _merge_coincident(points: np.ndarray, values: np.ndarray, tol_mm: float = 0.
 
 def control_point_warp(control: np.ndarray, displacement: np.ndarray):
     """The displacement field (a callable on (m, 3) points) of the TPS that moves the
-    control points by their displacements."""
+    control points by their displacements; with fewer than five distinct points (a 3D
+    TPS needs five: AU25's inner-lip points coincide on a closed mouth) their mean
+    displacement everywhere."""
     centres, values = _merge_coincident(control, displacement)
+    if len(centres) < 5:
+        mean = values.mean(axis=0)
+        return lambda points: np.broadcast_to(mean, np.shape(points)).copy()
     return TPS(centres, centres + values).displacement
 
 
