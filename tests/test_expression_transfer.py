@@ -399,3 +399,18 @@ def test_upper_spill_takes_no_lower_face_motion_apart_from_the_brows(smile):
     # measured: 0.19 mm added to a 0.19 mm brow field, against a 4 mm smile
     assert added <= 1.5 * np.nanmax(np.linalg.norm(cut_field, axis=2))
     assert added < 0.1 * smile_peak
+
+
+def test_published_warp_through_nearly_flat_control_points_moves_by_their_mean():
+    # Five lip points almost in one plane: the exact TPS's affine part would extrapolate
+    # their different motions across the face without bound.
+    from tpscore.expression.published import control_point_warp
+
+    rng = np.random.default_rng(3)
+    control = np.column_stack([rng.uniform(-20, 20, 6), rng.uniform(-5, 5, 6), rng.uniform(-0.3, 0.3, 6)])
+    motion = rng.normal(scale=3.0, size=(6, 3))
+    far = np.array([[0.0, 0.0, 80.0], [60.0, -40.0, 0.0]])
+    np.testing.assert_allclose(control_point_warp(control, motion)(far), np.tile(motion.mean(axis=0), (2, 1)))
+    # Spread in depth too, the warp interpolates the control points' own motion.
+    control = rng.uniform(-15, 15, size=(6, 3))
+    np.testing.assert_allclose(control_point_warp(control, motion)(control), motion, atol=1e-8)

@@ -47,13 +47,21 @@ def _merge_coincident(points: np.ndarray, values: np.ndarray, tol_mm: float = 0.
     return np.array(keep_p), np.array(keep_v)
 
 
+def _flat(points: np.ndarray, ratio: float = 0.1) -> bool:
+    """Whether the points' thinnest extent is under ``ratio`` of their widest."""
+    spread = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+    return bool(spread[-1] < ratio * spread[0])
+
+
 def control_point_warp(control: np.ndarray, displacement: np.ndarray):
     """The displacement field (a callable on (m, 3) points) of the TPS that moves the
     control points by their displacements; with fewer than five distinct points (a 3D
     TPS needs five: AU25's inner-lip points coincide on a closed mouth) their mean
-    displacement everywhere."""
+    displacement everywhere, and the same for points that lie almost in one plane or on
+    one line (the lips' contact line: the TPS's affine part would extrapolate across
+    the face without bound)."""
     centres, values = _merge_coincident(control, displacement)
-    if len(centres) < 5:
+    if len(centres) < 5 or _flat(centres):
         mean = values.mean(axis=0)
         return lambda points: np.broadcast_to(mean, np.shape(points)).copy()
     return TPS(centres, centres + values).displacement
