@@ -34,7 +34,7 @@ from ..physics import SimulationOptions, SkinModel, fit_head
 from .outputs import transfer_picture, write_result_mesh, write_result_page, write_sweep_gif
 from .progress import StepLog
 
-__all__ = ["run_demo", "run_skin_demo", "DEMO_EXPRESSIONS", "SKIN_DEMO_EXPRESSIONS", "SOURCE_PERSON", "TARGET_PERSON"]
+__all__ = ["run_demo", "run_skin_demo", "write_demo_scans", "DEMO_EXPRESSIONS", "SKIN_DEMO_EXPRESSIONS", "SOURCE_PERSON", "TARGET_PERSON"]
 
 #: (file stem, AU weights the source person shows, what is transferred). Sadness and
 #: surprise are whole emotions: all the motion the source's scan shows is carried (the
@@ -56,6 +56,19 @@ _SCAN_OPTIONS = dict(noise_mm=0.1, holes=1, pose_deg=4.0, landmark_noise_mm=0.5)
 _MOVING_MM = 0.5
 
 
+def write_demo_scans(scans_dir) -> dict:
+    """Write the demo's input scans (``.bnt``, ``.lm3``, ``.png``) into ``scans_dir``:
+    ``source_neutral``, ``target_neutral`` and ``source_<stem>`` for each of
+    :data:`DEMO_EXPRESSIONS`. Returns {file stem: (DemoScan, path of its .bnt)}."""
+    scans_dir = Path(scans_dir)
+    scans_dir.mkdir(parents=True, exist_ok=True)
+    scans = {"source_neutral": make_demo_scan(SOURCE_PERSON, None, seed=11, **_SCAN_OPTIONS),
+             "target_neutral": make_demo_scan(TARGET_PERSON, None, seed=13, **_SCAN_OPTIONS)}
+    for stem, expression, _ in DEMO_EXPRESSIONS:
+        scans[f"source_{stem}"] = make_demo_scan(SOURCE_PERSON, expression, seed=12, **_SCAN_OPTIONS)
+    return {stem: (scan, scan.write(scans_dir, stem)) for stem, scan in scans.items()}
+
+
 def run_demo(out_dir="demo-output", *, quiet: bool = False) -> dict:
     """Run the demo; return {stem: {"rms_mm": ..., "noop_rms_mm": ..., "seconds": ...}}.
 
@@ -64,22 +77,18 @@ def run_demo(out_dir="demo-output", *, quiet: bool = False) -> dict:
     is the same for the neutral target left as it was (what doing nothing scores).
     """
     out = Path(out_dir)
-    scans_dir = out / "scans"
-    scans_dir.mkdir(parents=True, exist_ok=True)
     say = StepLog(quiet)
-
-    source = make_demo_scan(SOURCE_PERSON, None, seed=11, **_SCAN_OPTIONS)
-    target = make_demo_scan(TARGET_PERSON, None, seed=13, **_SCAN_OPTIONS)
-    source_grid = load_scan(source.write(scans_dir, "source_neutral"))
-    target_grid = load_scan(target.write(scans_dir, "target_neutral"))
-    say(f"scanned person {SOURCE_PERSON} (source) and person {TARGET_PERSON} (target) neutral")
+    scans = write_demo_scans(out / "scans")
+    target = scans["target_neutral"][0]
+    source_grid = load_scan(scans["source_neutral"][1])
+    target_grid = load_scan(scans["target_neutral"][1])
+    say(f"scanned person {SOURCE_PERSON} (source) and person {TARGET_PERSON} (target), neutral and "
+        f"{len(DEMO_EXPRESSIONS)} expressions of the source")
 
     summary = {}
     for stem, expression, request in DEMO_EXPRESSIONS:
         began = time.perf_counter()
-        expressive = make_demo_scan(SOURCE_PERSON, expression, seed=12, **_SCAN_OPTIONS)
-        expressive_grid = load_scan(expressive.write(scans_dir, f"source_{stem}"))
-        say(f"{stem}: scanned the source's expression")
+        expressive_grid = load_scan(scans[f"source_{stem}"][1])
         grids = (source_grid, expressive_grid, target_grid)
         result = transfer(*grids, request, 1.0, progress=None if quiet else (lambda m: say(f"{stem}: {m}")))
         say(f"{stem}: transferred {'+'.join(result.animation.labels)}")
