@@ -89,6 +89,21 @@ def test_contact_projection_matches_the_reference(system):
     assert np.any(inside[:, 2] < 0)
 
 
+def test_skull_heights_match_the_reference(system):
+    arrays, core, x, _ = system
+    inside = x.copy()
+    inside[:, 2] -= 1.5  # heights of both signs
+    for jaw in (0.0, 0.25):
+        expected = reference.locate(arrays, inside, arrays.particle_foot, jaw)[0]
+        got = core.skull_heights(inside, arrays.particle_foot, jaw)
+        assert np.any(expected < 0) and np.any(expected > 0)
+        assert np.allclose(got, expected, rtol=0, atol=1e-12)
+    # a particle without a skull vertex has no height
+    foot = arrays.particle_foot.copy()
+    foot[0] = -1
+    assert core.skull_heights(inside, foot, 0.0)[0] == 0.0
+
+
 def test_run_loop_matches_the_reference(system):
     arrays, core, x, _ = system
     zero = np.zeros_like(x)

@@ -1,5 +1,5 @@
 // nanobind glue for the lattice kernels (tpscore/lattice_gram.hpp). Inputs arrive
-// C-contiguous from tpscore.motion (int64 stencil corners, float64 weights and
+// C-contiguous from tpscore.lattice (int64 stencil corners, float64 weights and
 // blocks); Python allocates the output and the kernel fills it in place.
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>

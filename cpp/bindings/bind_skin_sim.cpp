@@ -154,6 +154,13 @@ void bind_skin_sim(nb::module_& m) {
             "positions"_a, "velocities"_a, "foot"_a, "jaw_angle"_a,
             nb::call_guard<nb::gil_scoped_release>())
         .def(
+            "skull_heights",
+            [](const SkinSystem& s, const PointsIn& positions, const IndexRef& foot, double jaw_angle) {
+                return s.skull_heights(positions, foot, SkinControls{VectorX::Zero(s.muscles()), jaw_angle});
+            },
+            "positions"_a, "foot"_a, "jaw_angle"_a, nb::call_guard<nb::gil_scoped_release>(),
+            "Signed height (n,) of each particle over the skull near its skull vertex.")
+        .def(
             "step",
             [](SkinSystem& s, const PointsIn& positions, const PointsIn& velocities,
                const IndexRef& foot, const VectorRef& contractions, double jaw_angle, double dt,

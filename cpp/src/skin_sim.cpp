@@ -432,6 +432,20 @@ SkullGeometry SkinSystem::skull_at(const SkinControls& controls) const {
     return skull;
 }
 
+VectorX SkinSystem::skull_heights(const PointsRef& positions, const Eigen::Ref<const IndexVector>& foot,
+                                  const SkinControls& controls) const {
+    VectorX heights = VectorX::Zero(positions.rows());
+    if (data_.skull_vertices.rows() == 0) return heights;
+    const SkullGeometry skull = skull_at(controls);
+    parallel_for(static_cast<std::size_t>(positions.rows()), kMinChunk, [&](std::size_t begin, std::size_t end) {
+        for (std::size_t i = begin; i < end; ++i) {
+            const auto k = static_cast<Eigen::Index>(i);
+            if (foot[k] >= 0) heights[k] = locate(positions.row(k).transpose(), foot[k], skull).height;
+        }
+    });
+    return heights;
+}
+
 void SkinSystem::project_contacts(SkinState& state, const SkinControls& controls) const {
     const SkinSystemData& d = data_;
     if (d.skull_vertices.rows() == 0) return;

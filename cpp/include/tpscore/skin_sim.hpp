@@ -196,6 +196,11 @@ public:
     /// Skull contact: updates each particle's nearest skull vertex, and moves a particle
     /// found inside the skull back onto it (see above).
     void project_contacts(SkinState& state, const SkinControls& controls) const;
+    /// Each particle's signed height over the skull near its skull vertex `foot`
+    /// (positive outside; 0 where foot < 0 or the head has no skull), at the controls'
+    /// jaw angle: what the contact penalty tests against the margin.
+    VectorX skull_heights(const PointsRef& positions, const Eigen::Ref<const IndexVector>& foot,
+                          const SkinControls& controls) const;
 
     /// The net force less what the skull bears: for a particle lying on the skull (moved
     /// there by the projection), the part of its force pushing into the skull is

@@ -41,8 +41,7 @@ import scipy.sparse as sp
 
 from .._validation import check_options
 from ..mesh import vertex_normals, voronoi_areas
-from ..reference.skin import locate, project_contacts
-from .muscles import LinearMuscle, muscle_weights
+from .muscles import SkinLinearMuscle, muscle_weights
 from .system import LINEAR, MANDIBLE, SKULL, SPHINCTER, SkinArrays, rim_edges
 
 __all__ = ["SkinMaterial", "SkinLayers", "build_layers", "NEWTON", "KPA"]
@@ -298,7 +297,7 @@ def build_layers(head, material: SkinMaterial = SkinMaterial()) -> SkinLayers:
     indptr, particles, weights = [0], [], []
     for muscle in head.muscles:
         allowed = head.region_mask(muscle.regions)
-        if isinstance(muscle, LinearMuscle):
+        if isinstance(muscle, SkinLinearMuscle):
             attachment = muscle.attachment.position(skull, faces)
             insertion = muscle.insertion.position(hypodermis, faces)
             index, weight = muscle_weights(muscle, hypodermis, allowed, attachment=attachment, insertion=insertion)
@@ -360,11 +359,12 @@ def build_layers(head, material: SkinMaterial = SkinMaterial()) -> SkinLayers:
     # its zone starts at half its rest height.
     # Heights are taken from each particle's nearest skull vertex, where the contact
     # search starts (a column's own skull vertex is not always the nearest: the rays
-    # toward the head's centre are oblique to the skull at the sides). The NumPy
-    # reference does it: a one-time setup, before the compiled system exists.
+    # toward the head's centre are oblique to the skull at the sides): a compiled system
+    # of the arrays so far walks each foot there and measures the heights.
     checked = arrays.validated()
-    foot = project_contacts(checked, rest, np.zeros_like(rest), checked.particle_foot, 0.0)[2]
-    height, _, _ = locate(checked, rest, foot)
+    system = checked.core()
+    foot = system.project_contacts(rest, np.zeros_like(rest), checked.particle_foot, 0.0)[2]
+    height = system.skull_heights(rest, foot, 0.0)
     margin = np.clip(np.minimum(material.contact_margin_mm, 0.5 * height), 0.0, None)
     arrays = replace(arrays, particle_foot=foot, contact_margin=margin).validated()
     return SkinLayers(rest=rest, vertices=n, arrays=arrays, muscle_names=head.muscle_names)

@@ -42,9 +42,9 @@ import scipy.sparse.linalg as spla
 
 from .._validation import as_positive, check_options
 from ..mesh import face_normals
-from ..reference.skin import damping_matrix, stiffness_matrix
 from .head import Head
 from .layers import SkinLayers, SkinMaterial, build_layers
+from .linearised import spring_damping_matrix, spring_stiffness_matrix
 from .system import INTEGRATORS
 
 __all__ = ["SkinModel", "SimulationOptions", "SkinSimulation", "SkinWarning", "SimulationError", "MAX_JAW_DEG"]
@@ -261,14 +261,14 @@ class SkinModel:
         times 0.9.
         """
         if self._stable_step is None:
-            # The matrices are assembled once per model, by the NumPy reference: a setup
-            # cost next to a simulation, and the reference is the definition of K and D.
+            # The matrices are assembled once per model, in NumPy: a setup cost next to
+            # a simulation.
             arrays = self._layers.arrays
             stiff = replace(arrays, spring_stiffness=arrays.spring_stiffness_high)
             # with the contact penalty everywhere: any particle may touch the skull
-            w2 = _largest_eigenvalue(stiffness_matrix(stiff, self._layers.rest) + self._contact_everywhere(),
+            w2 = _largest_eigenvalue(spring_stiffness_matrix(stiff, self._layers.rest) + self._contact_everywhere(),
                                      arrays.masses)
-            r = _largest_eigenvalue(damping_matrix(arrays, self._layers.rest), arrays.masses)
+            r = _largest_eigenvalue(spring_damping_matrix(arrays, self._layers.rest), arrays.masses)
             self._stable_step = _STABILITY_SAFETY * (math.sqrt(r * r + 4.0 * w2) - r) / w2
         return self._stable_step
 

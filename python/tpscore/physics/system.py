@@ -2,7 +2,7 @@
 from them.
 
 :class:`SkinArrays` is the complete description the compiled core
-(``tpscore._core.SkinSystem``) and the NumPy reference (:mod:`tpscore.reference.skin`)
+(:func:`tpscore.skin_sim.compiled_skin_system`) and the NumPy reference (:mod:`tpscore.reference.skin`)
 share: particles and masses; biphasic damped springs; anchors to the skull or the
 mandible; muscles with their particles and weights; the skull for contact; the jaw's
 axis. :mod:`tpscore.physics.layers` fills it from a head; tests build small ones by
@@ -10,11 +10,11 @@ hand (one spring, a chain).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import _core
+from ..skin_sim import compiled_skin_system
 
 __all__ = ["SkinArrays", "SKULL", "MANDIBLE", "LINEAR", "SPHINCTER", "INTEGRATORS", "rim_edges"]
 
@@ -281,4 +281,4 @@ class SkinArrays:
 
     def core(self):
         """The compiled system (``tpscore._core.SkinSystem``) of validated arrays."""
-        return _core.SkinSystem(**{f.name: getattr(self, f.name) for f in fields(self)})
+        return compiled_skin_system(self)

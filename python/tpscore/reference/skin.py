@@ -13,6 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from ..physics.linearised import spring_damping_matrix, spring_state, spring_stiffness_matrix
 from .spatial import closest_point_on_triangles
 
 __all__ = [
@@ -56,21 +57,6 @@ def bone_points(arrays, points, bones, angle: float) -> np.ndarray:
         rotation = jaw_rotation(arrays.jaw_axis, angle)
         points[on_jaw] = arrays.jaw_pivot + (points[on_jaw] - arrays.jaw_pivot) @ rotation.T
     return points
-
-
-def spring_state(arrays, positions):
-    """Per spring: unit direction first -> second (s, 3), length, force (tension > 0), slope."""
-    delta = positions[arrays.spring_second] - positions[arrays.spring_first]
-    length = np.linalg.norm(delta, axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        direction = np.where(length[:, None] > 0, delta / length[:, None], 0.0)
-    extension = length - arrays.spring_rest
-    limit = arrays.spring_knee * arrays.spring_rest
-    beyond = np.abs(extension) > limit
-    high = arrays.spring_stiffness * limit + arrays.spring_stiffness_high * (np.abs(extension) - limit)
-    force = np.where(beyond, np.sign(extension) * high, arrays.spring_stiffness * extension)
-    slope = np.where(beyond, arrays.spring_stiffness_high, arrays.spring_stiffness)
-    return direction, length, force, slope
 
 
 def _skull_at(arrays, jaw_angle):
@@ -254,30 +240,6 @@ def project_contacts(arrays, positions, velocities, foot, jaw_angle: float):
     return positions, velocities, foot
 
 
-def _blocks(arrays, positions, tension_only: bool = True):
-    """Per spring: the 3 x 3 stiffness block -dF/dx and the damping direction outer product."""
-    direction, length, force, slope = spring_state(arrays, positions)
-    along = np.einsum("si,sj->sij", direction, direction)
-    geometric = force if not tension_only else np.maximum(force, 0.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = np.where(length > 0, geometric / length, 0.0)
-    stiffness = slope[:, None, None] * along + ratio[:, None, None] * (np.eye(3) - along)
-    return stiffness, along
-
-
-def _assemble(n, first, second, blocks, diagonal_extra):
-    """(3n, 3n) matrix with +B on both diagonal blocks and -B off the diagonal, per spring."""
-    rows, cols, vals = [], [], []
-    r = np.arange(3)
-    for a, b, sign in ((first, first, 1.0), (second, second, 1.0), (first, second, -1.0), (second, first, -1.0)):
-        rows.append((3 * a[:, None, None] + r[None, :, None]).repeat(3, axis=2).reshape(-1))
-        cols.append((3 * b[:, None, None] + r[None, None, :]).repeat(3, axis=1).reshape(-1))
-        vals.append(sign * blocks.reshape(-1))
-    matrix = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                           shape=(3 * n, 3 * n)).tocsr()
-    return matrix + sp.diags(np.repeat(diagonal_extra, 3))
-
-
 def stiffness_matrix(arrays, positions, *, tension_only: bool = True, foot=None,
                      jaw_angle: float = 0.0) -> sp.csr_matrix:
     """K = -df/dx of the springs, anchors and contact penalty at `positions` (3n, 3n);
@@ -287,10 +249,7 @@ def stiffness_matrix(arrays, positions, *, tension_only: bool = True, foot=None,
     its skull vertex `foot` (nowhere without `foot`)."""
     n = len(arrays.masses)
     positions = np.asarray(positions, dtype=np.float64)
-    blocks, _ = _blocks(arrays, positions, tension_only)
-    anchor = np.zeros(n)
-    np.add.at(anchor, arrays.anchor_particle, arrays.anchor_stiffness)
-    matrix = _assemble(n, arrays.spring_first, arrays.spring_second, blocks, anchor)
+    matrix = spring_stiffness_matrix(arrays, positions, tension_only=tension_only)
     rows, normal = _contact_rows(arrays, positions, foot, jaw_angle)
     if len(rows):
         matrix = matrix + _block_diagonal(n, rows, arrays.contact_stiffness[rows, None, None]
@@ -304,11 +263,7 @@ def damping_matrix(arrays, positions, *, foot=None, jaw_angle: float = 0.0) -> s
     the penalty."""
     n = len(arrays.masses)
     positions = np.asarray(positions, dtype=np.float64)
-    _, along = _blocks(arrays, positions)
-    diagonal = arrays.drag * arrays.masses.copy()
-    np.add.at(diagonal, arrays.anchor_particle, arrays.anchor_damping)
-    matrix = _assemble(n, arrays.spring_first, arrays.spring_second,
-                       arrays.spring_damping[:, None, None] * along, diagonal)
+    matrix = spring_damping_matrix(arrays, positions)
     rows, normal = _contact_rows(arrays, positions, foot, jaw_angle)
     if len(rows):
         matrix = matrix + _block_diagonal(n, rows, arrays.contact_damping[rows, None, None]
