@@ -31,6 +31,7 @@ from .spatial import MeshSurface
 
 __all__ = [
     "MeanCurvature",
+    "grid_triangles",
     "face_normals",
     "vertex_normals",
     "cotan_laplacian",
@@ -278,3 +279,18 @@ def height_field_remesh(vertices, faces, centre, *, shape=(150, 150), crop_mm: f
     renumber[used] = np.arange(len(used))
     return HeightFieldMesh(hits.points[used], renumber[grid], cropped[hits.triangles[used]],
                            hits.barycentric[used])
+
+
+def grid_triangles(mask) -> np.ndarray:
+    """Triangles over the valid vertices of an (H, W) grid, as flat row-major indices.
+
+    Each quad whose four vertices are valid gives two triangles split along its
+    (r, c)-(r+1, c+1) diagonal; a quad with exactly three valid vertices gives the one
+    triangle they form. Triangles run counter-clockwise seen from +z, in row-major quad
+    order (see :meth:`tpscore.face.grid.FaceGrid.triangles`).
+    """
+    mask = np.asarray(mask)
+    if mask.ndim != 2 or mask.dtype != np.bool_:
+        raise ValueError(f"mask must be an (H, W) bool array, got {mask.dtype} of shape {mask.shape}")
+    height, width = mask.shape
+    return _core.grid_triangles(np.ascontiguousarray(mask).reshape(-1), height, width)

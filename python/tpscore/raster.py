@@ -1,7 +1,7 @@
 """Orthographic z-buffer rasterisation: which triangle each pixel of an image sees.
 
 Pictures of faces (:mod:`tpscore.render`) and the colour images that texture tracking
-compares (:mod:`tpscore.texture`) both project a mesh along the view axis and keep,
+compares (:mod:`tpscore.expression.texture`) both project a mesh along the view axis and keep,
 per pixel, the front-most triangle under the pixel's centre and the barycentric
 weights of that centre, from which any vertex quantity (colour, u,v, position) is
 interpolated. The compiled kernel works on bands of rows in parallel; the NumPy
@@ -14,7 +14,7 @@ import numpy as np
 from . import _core
 from ._validation import as_array, as_faces, as_points, check_finite
 
-__all__ = ["rasterise", "interpolate_pixels", "MAX_RASTER_PIXELS"]
+__all__ = ["rasterise", "interpolate_pixels", "bilinear", "MAX_RASTER_PIXELS"]
 
 #: Largest image rasterised, in pixels (the outputs take 32 bytes a pixel).
 MAX_RASTER_PIXELS = 64_000_000
@@ -87,3 +87,27 @@ def interpolate_pixels(values, faces, triangle, barycentric) -> np.ndarray:
     out = _core.interpolate_pixels(np.ascontiguousarray(flat), faces, index,
                                    np.ascontiguousarray(barycentric.reshape(-1, 3)))
     return out.reshape(triangle.shape + array.shape[1:])
+
+
+def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Values of an (h, w) or (h, w, c) array at continuous pixel coordinates (x along
+    columns, y along rows, pixel centres at integers), clamped to the image: float64 for
+    a float64 array, float32 otherwise.
+
+    Raises
+    ------
+    ValueError
+        If the image is not 2-D or 3-D with h, w >= 2, or a coordinate is not finite.
+    """
+    image = np.asarray(image)
+    if image.ndim not in (2, 3) or min(image.shape[:2]) < 2:
+        raise ValueError(f"image must have shape (h, w) or (h, w, c) with h, w >= 2, got {image.shape}")
+    x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+    if not (np.isfinite(x).all() and np.isfinite(y).all()):
+        raise ValueError("x and y must be finite pixel coordinates")
+    dtype = np.float64 if image.dtype == np.float64 else np.float32
+    pixels = np.ascontiguousarray(image, dtype=dtype)  # exact for 8-bit and float32 images
+    pixels = pixels.reshape(pixels.shape[:2] + (-1,))
+    out = np.empty((x.size, pixels.shape[2]), dtype=dtype)
+    _core.bilinear_sample_into(pixels, np.ascontiguousarray(x).reshape(-1), np.ascontiguousarray(y).reshape(-1), out)
+    return out.reshape(x.shape + image.shape[2:])

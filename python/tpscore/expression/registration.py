@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .. import _core
+from ..registration_terms import point_to_plane_terms, texture_pull_terms
 from .._validation import check_options
 from ..lattice import BSplineLattice, LatticeSystem
 from ..mesh import face_normals
@@ -203,12 +203,8 @@ def _point_to_plane(sample, pairs: _Pairs, prior, floor):
     the (m, 3) right-hand sides, and each pair's distance along the normal and weight
     (for :func:`_fit_measures`). A compiled kernel; NumPy reference:
     :func:`tpscore.reference.registration.point_to_plane_terms`."""
-    m = len(sample)
-    blocks, rhs, along, weight = np.empty((m, 6)), np.empty((m, 3)), np.empty(m), np.empty(m)
-    _core.point_to_plane_terms_into(_float64(sample), _float64(pairs.moved), _float64(pairs.points),
-                                    _float64(pairs.distances), _float64(pairs.normals), _float64(prior),
-                                    float(floor), TUKEY_FACTOR, blocks, rhs, along, weight)
-    return blocks, rhs, along, weight
+    return point_to_plane_terms(sample, pairs.moved, pairs.points, pairs.distances, pairs.normals, prior,
+                                float(floor), TUKEY_FACTOR)
 
 
 def _fit_measures(along, w) -> tuple[float, float]:
@@ -223,17 +219,8 @@ def _texture_pull(sample, pairs: _Pairs, targets, prior):
     match's weight times a Tukey weight of its tangential residual. Returns the (m, 6)
     blocks w P and the (m, 3) right-hand sides w P (q - s). A compiled kernel; NumPy
     reference: :func:`tpscore.reference.registration.texture_pull_terms`."""
-    m = len(sample)
-    blocks, rhs = np.empty((m, 6)), np.empty((m, 3))
-    _core.texture_pull_terms_into(_float64(sample), _float64(pairs.moved), _float64(targets),
-                                  _float64(pairs.normals), _float64(prior), TEXTURE_SCALE_FLOOR_MM,
-                                  TUKEY_FACTOR, blocks, rhs)
-    return blocks, rhs
-
-
-def _float64(array) -> np.ndarray:
-    """A C-contiguous float64 array, as the kernels take it (no copy when it is one)."""
-    return np.ascontiguousarray(array, dtype=np.float64)
+    return texture_pull_terms(sample, pairs.moved, targets, pairs.normals, prior, TEXTURE_SCALE_FLOOR_MM,
+                              TUKEY_FACTOR)
 
 
 def _texture_samples(texture, sample_mask, prior, options: MotionOptions):

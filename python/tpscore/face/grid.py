@@ -33,10 +33,10 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
-from .. import _core
 from .._threads import blas_on_one_thread, num_threads
 from .._validation import MAX_COORDINATE, as_array, as_path, as_positive
 from ..geometry import FrameTransform
+from ..mesh import grid_triangles
 from .image import as_colour_image as _as_colour_image
 from .image import check_image_fits, sample_image
 from .io import BntScan, landmark_file_beside, read_bnt, read_image, read_landmarks, read_mesh
@@ -225,7 +225,7 @@ class FaceGrid:
         (m, 3) int64 indices into ``self.vertices``.
         """
         height, width = self.shape
-        return _core.grid_triangles(self.mask.reshape(-1), height, width)
+        return grid_triangles(self.mask)
 
     def mesh(self) -> GridMesh:
         """The valid vertices and the triangles over them, reindexed (see :class:`GridMesh`)."""

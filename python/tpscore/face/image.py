@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import _core
+from ..raster import bilinear
 
 __all__ = ["as_colour_image", "sample_image", "grey_levels", "check_image_fits"]
 
@@ -51,30 +51,6 @@ def sample_image(image: np.ndarray, uv) -> np.ndarray:
     x = np.clip(uv[..., 0] * width - 0.5, 0.0, width - 1.0)
     y = np.clip(uv[..., 1] * height - 0.5, 0.0, height - 1.0)
     return bilinear(image, x, y)
-
-
-def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Values of an (h, w) or (h, w, c) array at continuous pixel coordinates (x along
-    columns, y along rows, pixel centres at integers), clamped to the image: float64 for
-    a float64 array, float32 otherwise.
-
-    Raises
-    ------
-    ValueError
-        If the image is not 2-D or 3-D with h, w >= 2, or a coordinate is not finite.
-    """
-    image = np.asarray(image)
-    if image.ndim not in (2, 3) or min(image.shape[:2]) < 2:
-        raise ValueError(f"image must have shape (h, w) or (h, w, c) with h, w >= 2, got {image.shape}")
-    x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
-    if not (np.isfinite(x).all() and np.isfinite(y).all()):
-        raise ValueError("x and y must be finite pixel coordinates")
-    dtype = np.float64 if image.dtype == np.float64 else np.float32
-    pixels = np.ascontiguousarray(image, dtype=dtype)  # exact for 8-bit and float32 images
-    pixels = pixels.reshape(pixels.shape[:2] + (-1,))
-    out = np.empty((x.size, pixels.shape[2]), dtype=dtype)
-    _core.bilinear_sample_into(pixels, np.ascontiguousarray(x).reshape(-1), np.ascontiguousarray(y).reshape(-1), out)
-    return out.reshape(x.shape + image.shape[2:])
 
 
 def grey_levels(colours: np.ndarray) -> np.ndarray:
