@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tpscore.physics import SkinModel, build_template
+from tpscore.datasets import skin_template
+from tpscore.physics import SkinModel
 from tpscore.physics.system import INTEGRATORS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -64,7 +65,7 @@ def sweep_cases(model, integrator, dt):
 
 def main() -> int:
     lines = ["| integrator | skin | step | smile | jaw 15 deg | wall time per step |", "|---|---|---:|---|---|---:|"]
-    model = SkinModel(build_template(2.5))
+    model = SkinModel(skin_template(2.5))
     limit = model.stable_step
     for factor in (0.5, 1.0, 1.25, 1.5, 1.75, 2.0, 3.0):
         dt = factor * limit
@@ -78,7 +79,7 @@ def main() -> int:
         lines.append(f"| implicit | template, 2,571 vertices | {dt * 1e3:g} ms ({dt / limit:.0f} x stable_step) | "
                      f"{cells[0]} | {cells[1]} | {1e3 * np.mean(per_step):.1f} ms |")
         print(lines[-1], flush=True)
-    coarse = SkinModel(build_template(5.0))
+    coarse = SkinModel(skin_template(5.0))
     lines.append(f"| semi-implicit | template, 642 vertices | stable_step = {coarse.stable_step * 1e6:.1f} us | | | |")
     for dt in (1e-3, 2e-3, 5e-3, 1e-2, 2e-2):
         cells, per_step = sweep_cases(coarse, "implicit", dt)

@@ -12,8 +12,8 @@ from tpscore import datasets
 from tpscore import cli
 from tpscore.adaptation import AdaptationWarning, AdaptOptions, adapt
 from tpscore.adaptation.calibration import axes_calibration, calibrate, rotation_angles
-from tpscore.adaptation.correspondence import (curvature_features, self_occluded, spread_vertices,
-                                               triangulate_features)
+from tpscore.adaptation.correspondence import curvature_features, self_occluded, triangulate_features
+from tpscore.geometry import spread_vertices
 from tpscore.adaptation.fill import fill_unseen_offsets
 from tpscore.adaptation.setup import find_outlier_landmarks
 from tpscore.adaptation.surface import SurfaceOffset, fit_surface_offset

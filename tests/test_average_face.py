@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 
 from tpscore import datasets
+from tpscore.datasets import afm_faces
 from tpscore.face.average_face import (
     AverageFace,
-    afm_faces,
     build_average_face,
     consensus_landmarks,
     load_average_face,

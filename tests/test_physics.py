@@ -14,7 +14,8 @@ from tpscore.face import io
 from tpscore.face.landmarks import landmark_index
 from tpscore.physics import SimulationError, SimulationOptions, SkinMaterial, SkinModel, SkinWarning
 from tpscore.physics.fitting import carry_head, deform_from_vertices
-from tpscore.physics.head import REGIONS, build_template
+from tpscore.datasets import skin_template
+from tpscore.physics.head import REGIONS
 from tpscore.reference.skin import bone_points
 
 from skin_helpers import flat_head, linear_muscle
@@ -31,12 +32,12 @@ def template():
 @pytest.fixture(scope="module")
 def coarse():
     """The template at 5 mm: the same head, a sixth of the particles, quick to simulate."""
-    head = build_template(5.0)
+    head = skin_template(5.0)
     return head, SkinModel(head)
 
 
 def test_shipped_template_is_what_the_builder_makes(template):
-    built = build_template()
+    built = skin_template()
     # integer and boolean fields are the builder's exactly; the positions pass through
     # NumPy's floating-point paths, whose SIMD kernels round differently from one CPU to
     # another (an AVX2-only CPU moved 117 vertices by up to 7e-15 mm): they agree to a
@@ -291,9 +292,9 @@ def test_fit_head_carries_the_template_onto_a_scan():
     grid = tpscore.resample_scan(scan.points, scan.landmarks)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        head, adaptation = physics.fit_head(grid, scan.landmarks, build_template(5.0))
+        head, adaptation = physics.fit_head(grid, scan.landmarks, skin_template(5.0))
     assert np.allclose(head.vertices, adaptation.vertices)
-    assert np.allclose(head.skull_vertices, adaptation.deform(build_template(5.0).skull_vertices))
+    assert np.allclose(head.skull_vertices, adaptation.deform(skin_template(5.0).skull_vertices))
     # the fitted skin lies on the scan, and its landmarks near the scan's
     lm = head.landmarks
     assert np.nanmax(np.linalg.norm(lm[[landmark_index("Nose tip"), landmark_index("Chin middle")]]
@@ -317,7 +318,7 @@ def test_simulate_command_fits_a_scan_and_writes_the_outputs(tmp_path, capsys):
     io.write_lm3(tmp_path / "face.lm3", scan.landmarks)
     out, gif, png = tmp_path / "smile.npz", tmp_path / "smile.gif", tmp_path / "smile.png"
     coarse = tmp_path / "coarse_head.npz"  # the template at 5 mm: a quick test
-    build_template(5.0).save(coarse)
+    skin_template(5.0).save(coarse)
     assert main(["simulate", str(tmp_path / "face.bnt"), "--au", "12:0.4", "--jaw", "5", "--out", str(out),
                  "--gif", str(gif), "--png", str(png), "--mesh", str(tmp_path / "smile.obj"), "--quiet",
                  "--template", str(coarse)]) == 0

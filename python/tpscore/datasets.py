@@ -85,11 +85,16 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from .face.grid import FaceGrid, resample_scan
 from .face.landmarks import LANDMARK_NAMES
 from .face.regions import smoothstep
+from .physics.head import Head, build_template
 
 __all__ = [
     "FaceParameters",
+    "face_point_cloud",
+    "skin_template",
+    "afm_faces",
     "SyntheticScan",
     "ACTION_UNITS",
     "random_identity",
@@ -746,10 +751,6 @@ class SyntheticScan:
         rows, cols = np.mgrid[0:nrows, 0:ncols]
         return np.stack([(cols + 0.5) / ncols, (rows + 0.5) / nrows], axis=-1)
 
-    def surface_height(self, x, y) -> np.ndarray:
-        """Clean face-frame height of this scan's (expressive) surface at x, y (mm)."""
-        return face_height(self.identity, x, y, self.expression)
-
     def neutral_points(self) -> np.ndarray:
         """(nrows, ncols, 3) face-frame neutral position of each pixel's skin point."""
         x, y = self.skin_xy[..., 0], self.skin_xy[..., 1]
@@ -898,3 +899,33 @@ def demo_triplet(au="12", magnitude: float = 1.0, *, spacing_mm: float = DEFAULT
     return (make_face(source, None, seed=seed, **options),
             make_face(source, expression, seed=seed + 1, **options),
             make_face(target, None, seed=seed + 2, **options))
+
+
+def skin_template(spacing_mm: float = 2.5, *, muscles=None) -> Head:
+    """The physical skin's template head (:func:`tpscore.physics.build_template`) made
+    from the procedural average face at ``spacing_mm``: 2.5 mm gives the shipped
+    ``skin_template.npz`` (about 2,600 vertices), 1.25 mm about 10,000."""
+    return build_template(make_face(None, spacing_mm=spacing_mm), spacing_mm, muscles=muscles)
+
+
+def afm_faces(shape=(150, 150)) -> list[FaceGrid]:
+    """The embedded procedural faces resampled as face grids: the database the shipped
+    average face (:func:`tpscore.face.average_face.build_average_face`) is built from."""
+    return [resample_scan(scan.points, scan.landmarks, shape) for scan in embedded_faces()]
+
+
+def face_point_cloud(n: int, seed: int = 0, jitter: float = 0.3, width: float = 150.0,
+                     height: float = 180.0) -> np.ndarray:
+    """n points (mm) on a face-like height field (a dome and a nose-like bump), on a
+    jittered grid in x, y: quasi-uniform like the vertices of a resampled scan. The
+    sparse kernels' tests and benchmarks fit on it."""
+    rng = np.random.default_rng(seed)
+    cols = int(round(np.sqrt(n * width / height)))
+    rows = int(np.ceil(n / cols))
+    x, y = np.meshgrid(np.linspace(-width / 2, width / 2, cols), np.linspace(-height / 2, height / 2, rows))
+    spacing = width / (cols - 1)
+    x = x.ravel()[:n] + rng.uniform(-jitter, jitter, n) * spacing
+    y = y.ravel()[:n] + rng.uniform(-jitter, jitter, n) * spacing
+    z = 60 * np.exp(-(x**2 / (2 * 55**2) + y**2 / (2 * 70**2))) + 18 * np.exp(
+        -(x**2 / (2 * 9**2) + (y + 5) ** 2 / (2 * 16**2)))
+    return np.stack([x, y, z], axis=1)

@@ -14,7 +14,7 @@ import scipy.sparse as sp
 
 from ._validation import as_array, as_points
 
-__all__ = ["mesh_edges", "vertex_adjacency", "robust_scale", "tukey_weights", "off_surface", "FrameTransform",
+__all__ = ["mesh_edges", "spread_vertices", "vertex_adjacency", "robust_scale", "tukey_weights", "off_surface", "FrameTransform",
            "paired_points", "similarity_transform"]
 
 # The median absolute deviation times this is the standard deviation of a normal
@@ -171,3 +171,33 @@ def similarity_transform(source, target, *, scale: bool = True, weights=None) ->
     m[:3, :3] = s * rotation
     m[:3, 3] = mu_d - s * rotation @ mu_s
     return FrameTransform(m, "similarity" if scale else "rigid")
+
+
+def spread_vertices(vertices, spacing: float, candidates=None) -> np.ndarray:
+    """About one vertex per cube of side `spacing`: evenly spread samples of a mesh.
+
+    Parameters
+    ----------
+    vertices : (n, 3) array_like
+        Points (mm).
+    spacing : float
+        Cube side (mm), > 0.
+    candidates : (n,) bool array_like, optional
+        Only these vertices may be chosen.
+
+    Returns
+    -------
+    (k,) int64 indices, the vertex nearest the centre of each occupied cube.
+    """
+    vertices = as_points(vertices, "vertices")
+    pool = np.arange(len(vertices)) if candidates is None else np.flatnonzero(candidates)
+    if len(pool) == 0:
+        return pool.astype(np.int64)
+    scaled = vertices[pool] / spacing
+    cells = np.floor(scaled).astype(np.int64)
+    offset = np.linalg.norm(scaled - cells - 0.5, axis=1)
+    order = np.lexsort((offset, cells[:, 2], cells[:, 1], cells[:, 0]))
+    sorted_cells = cells[order]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = np.any(sorted_cells[1:] != sorted_cells[:-1], axis=1)
+    return np.sort(pool[order[first]]).astype(np.int64)

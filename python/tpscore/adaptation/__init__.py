@@ -1,4 +1,4 @@
-"""Template adaptation (DESIGN.md, method 2): deform a template mesh onto a scan.
+"""Template adaptation (docs/design.md, method 2): deform a template mesh onto a scan.
 
 Given a template (any topology) with feature points and a scan (a mesh or a Bosphorus
 grid, noisy, with holes) with the corresponding feature points, :func:`adapt` returns

@@ -13,7 +13,7 @@ hole, gives no pair, never a guess):
 
 The default ``"surface"`` refinement pairs differently: every visible template vertex
 with its closest scan point (:func:`closest_visible_pairs`), on centres spread evenly
-over the template (:func:`spread_vertices`).
+over the template (:func:`tpscore.geometry.spread_vertices`).
 """
 from __future__ import annotations
 
@@ -32,7 +32,6 @@ __all__ = [
     "closest_visible_pairs",
     "curvature_features",
     "self_occluded",
-    "spread_vertices",
     "triangulate_features",
 ]
 
@@ -342,36 +341,6 @@ def curvature_features(vertices, faces, count: int, *, box=None, spacing: float 
     # Only the best few times `count` can survive the spreading; the rest is not worth walking.
     order = order[: max(20 * int(count), 1)]
     return _greedy_spread(order, vertices, float(spacing))[: int(count)]
-
-
-def spread_vertices(vertices, spacing: float, candidates=None) -> np.ndarray:
-    """About one vertex per cube of side `spacing`: evenly spread samples of a mesh.
-
-    Parameters
-    ----------
-    vertices : (n, 3) array_like
-        Points (mm).
-    spacing : float
-        Cube side (mm), > 0.
-    candidates : (n,) bool array_like, optional
-        Only these vertices may be chosen.
-
-    Returns
-    -------
-    (k,) int64 indices, the vertex nearest the centre of each occupied cube.
-    """
-    vertices = as_points(vertices, "vertices")
-    pool = np.arange(len(vertices)) if candidates is None else np.flatnonzero(candidates)
-    if len(pool) == 0:
-        return pool.astype(np.int64)
-    scaled = vertices[pool] / spacing
-    cells = np.floor(scaled).astype(np.int64)
-    offset = np.linalg.norm(scaled - cells - 0.5, axis=1)
-    order = np.lexsort((offset, cells[:, 2], cells[:, 1], cells[:, 0]))
-    sorted_cells = cells[order]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = np.any(sorted_cells[1:] != sorted_cells[:-1], axis=1)
-    return np.sort(pool[order[first]]).astype(np.int64)
 
 
 def self_occluded(vertices, faces, view_direction, *, offset: float = 0.3,

@@ -178,7 +178,7 @@ class AdaptOptions:
 
     @classmethod
     def published(cls, **changes) -> "AdaptOptions":
-        """The template adaptation as published (DESIGN.md, method 2): the scan calibrated
+        """The template adaptation as published (docs/design.md, method 2): the scan calibrated
         by the feature points' axes (R = Rz Ry Rx, the scale from a reference axis); a
         global biharmonic RBF with an affine part (K - rho I) through the feature points;
         then levels f_k = f_{k-1} + o_k with halving supports, each o_k interpolating the

@@ -16,7 +16,8 @@ from .._validation import as_points
 from ..csrbf import wendland
 from ..mesh import vertex_normals
 from ..spatial import KDTree
-from .correspondence import closest_visible_pairs, spread_vertices
+from ..geometry import spread_vertices
+from .correspondence import closest_visible_pairs
 from .levels import LevelFit
 from .options import AdaptOptions
 from .result import evaluate_fields

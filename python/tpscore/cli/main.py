@@ -26,7 +26,8 @@ from .._version import __version__
 from ..batch.scores import surface_distances
 from ..expression import TransferOptions, transfer
 from ..face import io
-from ..face.average_face import afm_faces, build_average_face
+from ..datasets import afm_faces
+from ..face.average_face import build_average_face
 from ..face.grid import load_scan, load_scans
 from .adapt import add_adapt_parser, adapt_command
 from .arguments import grid_shape

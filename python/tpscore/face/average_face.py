@@ -20,12 +20,11 @@ import numpy as np
 
 from .landmarks import LANDMARK_NAMES, N_LANDMARKS, landmark_index, landmark_map
 from .normalise import FrameTransform, NormalisedFace, similarity_transform
-from ..datasets import embedded_faces
 from .grid import FaceGrid, resample_scan
 from .io import read_npz, write_npz
 from ..spatial import MeshSurface
 
-__all__ = ["AverageFace", "build_average_face", "load_average_face", "consensus_landmarks", "afm_faces",
+__all__ = ["AverageFace", "build_average_face", "load_average_face", "consensus_landmarks",
            "canonical_frame"]
 
 
@@ -195,9 +194,3 @@ def load_average_face() -> AverageFace:
     path = resources.files("tpscore").joinpath("data/average_face.npz")
     with resources.as_file(path) as real:
         return AverageFace.load(real)
-
-
-def afm_faces(shape=(150, 150)) -> list[FaceGrid]:
-    """The embedded procedural faces (tpscore.datasets) resampled as face grids: the
-    database the shipped AFM is built from."""
-    return [resample_scan(scan.points, scan.landmarks, shape) for scan in embedded_faces()]

@@ -28,12 +28,12 @@ import numpy as np
 
 from .._validation import as_points
 from ..adaptation import AdaptOptions, AdaptResult, adapt
-from ..adaptation.correspondence import spread_vertices
 from ..face.landmarks import landmark_index
 from ..face.normalise import face_frame
+from ..geometry import spread_vertices
 from ..rbf import RBF
 from .head import Head, load_template
-from .muscles import SphincterMuscle
+from .muscles import SkinSphincterMuscle
 
 __all__ = ["carry_head", "fit_head", "deform_from_vertices"]
 
@@ -109,7 +109,7 @@ def carry_head(template: Head, deform, vertices=None) -> Head:
 
     muscles = []
     for muscle in template.muscles:
-        if isinstance(muscle, SphincterMuscle):
+        if isinstance(muscle, SkinSphincterMuscle):
             muscles.append(_carry_sphincter(muscle, mapping, template_landmarks, fitted_landmarks))
         else:
             muscles.append(muscle)
@@ -119,7 +119,7 @@ def carry_head(template: Head, deform, vertices=None) -> Head:
                    muscles=tuple(muscles))
 
 
-def _carry_sphincter(muscle: SphincterMuscle, mapping, template_landmarks, fitted_landmarks) -> SphincterMuscle:
+def _carry_sphincter(muscle: SkinSphincterMuscle, mapping, template_landmarks, fitted_landmarks) -> SkinSphincterMuscle:
     centre = muscle.epicentre
     points = np.stack([centre] + [centre + s * _JACOBIAN_STEP_MM * a / np.linalg.norm(a)
                                   for a in muscle.axes for s in (-1.0, 1.0)])
@@ -171,7 +171,7 @@ def fit_head(scan, scan_landmarks, template: Head | None = None, *,
 
 
 def _adapt_skin(template: Head, scan, scan_landmarks, adapt_options: AdaptOptions) -> AdaptResult:
-    # The one place the physical skin calls the template adaptation (DESIGN.md,
+    # The one place the physical skin calls the template adaptation (docs/design.md,
     # method 2, of which the skin is the last stage).
     return adapt((template.vertices, template.faces), scan, template.landmark_vertices, scan_landmarks,
                  options=adapt_options)

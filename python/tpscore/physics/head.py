@@ -27,10 +27,9 @@ from typing import Mapping
 import numpy as np
 
 from .._validation import as_faces, as_points
-from ..datasets import make_face
 from ..face.io import write_npz
 from ..face.landmarks import LANDMARK_NAMES, MIRROR_LANDMARK, N_LANDMARKS, landmark_index
-from .muscles import LinearMuscle, SphincterMuscle, place_muscles, read_muscle_file
+from .muscles import SkinLinearMuscle, SkinSphincterMuscle, place_muscles, read_muscle_file
 
 __all__ = [
     "Head",
@@ -154,7 +153,7 @@ class Head:
         A point on the jaw's axis of rotation.
     jaw_axis : (3,) ndarray
         Unit axis (the head's x, toward the subject's left); a positive jaw angle opens.
-    muscles : tuple of LinearMuscle / SphincterMuscle
+    muscles : tuple of SkinLinearMuscle / SkinSphincterMuscle
     action_units : dict
         FACS AU code -> {muscle name: relative contraction}.
     """
@@ -194,12 +193,12 @@ class Head:
         if np.linalg.norm(axis) == 0:
             raise ValueError("jaw_axis must be non-zero")
         for muscle in self.muscles:
-            if not isinstance(muscle, (LinearMuscle, SphincterMuscle)):
-                raise ValueError(f"muscles must be LinearMuscle or SphincterMuscle, got {type(muscle).__name__}")
+            if not isinstance(muscle, (SkinLinearMuscle, SkinSphincterMuscle)):
+                raise ValueError(f"muscles must be SkinLinearMuscle or SkinSphincterMuscle, got {type(muscle).__name__}")
             for region in muscle.regions:
                 if region not in names:
                     raise ValueError(f"muscle {muscle.name!r} acts on region {region!r}, which the head lacks")
-            if isinstance(muscle, LinearMuscle):
+            if isinstance(muscle, SkinLinearMuscle):
                 for point in (muscle.attachment, muscle.insertion):
                     if point.face >= len(faces):
                         raise ValueError(f"muscle {muscle.name!r} refers to face {point.face}; the head has "
@@ -369,21 +368,30 @@ def _template_regions(vertices: np.ndarray, landmarks: np.ndarray, lower_copy: n
     return region.astype(np.int64), mandible
 
 
-def build_template(spacing_mm: float = DEFAULT_SPACING_MM, *, muscles=None) -> Head:
-    """The template head made from tpscore's procedural average face.
+def build_template(scan, spacing_mm: float = DEFAULT_SPACING_MM, *, muscles=None) -> Head:
+    """The template head made from a neutral face on a regular grid.
+
+    The shipped template is built from tpscore's procedural average face,
+    :func:`tpscore.datasets.skin_template` (``make_face(None, spacing_mm=2.5)``).
 
     Parameters
     ----------
+    scan : a synthetic scan (:class:`tpscore.datasets.SyntheticScan`)
+        ``points`` (H, W, 3) on a grid of ``spacing_mm``, ``valid`` (H, W) and the 22
+        ``landmarks``, in the reference frame.
     spacing_mm : float
-        Grid spacing (mm); 2.5 gives the shipped template (about 2,600 vertices), 1.25
-        about 10,000.
+        Its grid spacing (mm); 2.5 gives the shipped template (about 2,600 vertices),
+        1.25 about 10,000.
     muscles : dict, optional
         A parsed muscle file (default: the shipped ``skin_muscles.json``).
     """
     spacing = float(spacing_mm)
     if not np.isfinite(spacing) or not 0.5 <= spacing <= 10:
         raise ValueError(f"spacing_mm must be in [0.5, 10] mm, got {spacing_mm!r}")
-    scan = make_face(None, spacing_mm=spacing)
+    with np.errstate(invalid="ignore"):
+        step = float(np.nanmedian(np.diff(np.asarray(scan.points, dtype=np.float64)[..., 0], axis=1)))
+    if not np.isclose(step, spacing, atol=1e-9):
+        raise ValueError(f"scan: its grid spacing ({step:.4g} mm) is not spacing_mm ({spacing} mm)")
     landmarks = scan.landmarks
     y_mouth = 0.5 * (landmarks[landmark_index("Left mouth corner"), 1] + landmarks[landmark_index("Right mouth corner"), 1])
     x_corner = 0.5 * (landmarks[landmark_index("Left mouth corner"), 0] - landmarks[landmark_index("Right mouth corner"), 0])
