@@ -5,7 +5,7 @@ per control point; factorising once and reusing the factor is what makes its bas
 cheap. :class:`SparseCholesky` wraps the compiled LDL^T factorisation (Eigen's
 SimplicialLDLT with an approximate-minimum-degree ordering). :class:`PatternCholesky`
 factorises a sequence of matrices that share one sparsity pattern, analysing the
-pattern once (the iterations of the dense registration in :mod:`tpscore.motion`).
+pattern once (the iterations of the dense registration in :mod:`tpscore.expression.registration`).
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Expression transfer (DESIGN.md, method 1): an AU modelled on a source person and
+"""Expression transfer (docs/design.md, method 1): an AU modelled on a source person and
 animated on a target person. :func:`transfer` (also ``tpscore.transfer``) runs the whole
 pipeline; the stages are modules of their own (alignment, texture, registration with its
 landmark pairs, the cut at the openings, modelling, animation, and the parts of the method

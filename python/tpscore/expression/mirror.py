@@ -61,7 +61,7 @@ class MirroredMotion:
 
     A point p takes the mean of its own displacement u(p) and of the displacement at its
     mirror point, reflected back: M u(S p), with S the face's mirror map (a plane
-    reflection, :func:`tpscore.alignment.fit_mirror_symmetry`) and M its linear part.
+    reflection, :func:`tpscore.expression.alignment.fit_mirror_symmetry`) and M its linear part.
     The two sides' independent errors (landmark labels, scanner noise, holes) average
     out. Each term is weighted by how well the registered face covers its point (full
     within ``reach_mm`` of a vertex of the face, none beyond twice that, measured in the

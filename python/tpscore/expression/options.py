@@ -72,7 +72,7 @@ class TransferOptions:
 
     @classmethod
     def published(cls) -> "TransferOptions":
-        """The method as published (DESIGN.md, method 1): each scan normalised on its own
+        """The method as published (docs/design.md, method 1): each scan normalised on its own
         landmarks by the affine map T = A B^-1; the AU's control points mapped onto the
         expressive scan by the landmark TPS and snapped to its nearest vertex; moved onto
         the target by the landmark TPS (nearest-vertex snap), their motion scaled by the

@@ -1,5 +1,5 @@
 """Expression transfer in one call: model an AU on a source person, animate it on a
-target person (DESIGN.md, method 1).
+target person (docs/design.md, method 1).
 
 The stages, one module each: normalisation of every face into the reference face's
 frame (:mod:`tpscore.face.normalise`); the rigid alignment of the source's expressive

@@ -1,4 +1,4 @@
-"""The parts of the method as published that the default replaced (DESIGN.md, method 1):
+"""The parts of the method as published that the default replaced (docs/design.md, method 1):
 lower-face motion scaled by the ratio of the mouth widths, and each region of the target
 warped by a thin-plate spline through the AU's moved control points alone.
 

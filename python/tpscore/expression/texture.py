@@ -6,7 +6,7 @@ surface has shape (lips, nose, brows); on a smooth cheek or forehead it cannot s
 far the skin slid. The skin's pattern (pores, freckles, moles, mottling, brows) moves
 with the skin, so the colour images can: this stage tracks the pattern with dense
 optical flow and lifts the flow to 3D correspondences, which the dense registration
-(:func:`tpscore.motion.register_surfaces`) weighs next to the geometry.
+(:func:`tpscore.expression.registration.register_surfaces`) weighs next to the geometry.
 
 1. **One image plane.** Both scans are already in one frame (the expressive scan
    aligned rigidly onto the neutral one). Each is rendered into the same orthographic

@@ -4,7 +4,7 @@
 The scipy route to the block Gram matrix sum_i (b_i b_i^T) (x) Q_i of samples on a
 B-spline lattice: one sparse product B^T diag(Q_kl) B per component pair (k, l),
 stacked in component blocks [x; y; z]. Same conventions as
-tpscore.motion.LatticeSystem.data_term.
+tpscore.lattice.LatticeSystem.data_term.
 """
 from __future__ import annotations
 
