@@ -25,7 +25,7 @@ install: $(VENV)/.installed
 # under each lower set this CPU has, the AVX2 run with NumPy's own AVX-512 paths off as
 # on a CPU without them, so a developer on any CPU exercises every kernel path.
 KERNEL_TESTS ?= tests/test_rbf.py tests/test_csrbf.py tests/test_spatial.py tests/test_mesh.py \
-	tests/test_sparse.py tests/test_raster.py tests/test_skin_sim.py tests/test_motion.py tests/test_pickling.py
+	tests/test_sparse.py tests/test_raster.py tests/test_skin_sim.py tests/test_registration.py tests/test_pickling.py
 NUMPY_WITHOUT_AVX512 := AVX512F AVX512CD AVX512_SKX AVX512_CLX AVX512_CNL AVX512_ICL AVX512_SPR
 LOWER_SIMD = $(PY) -c "from tpscore import _core; order = ['avx512', 'avx2', 'baseline']; \
 	print(' '.join(order[order.index(_core.simd_level()) + 1:]))"
@@ -68,7 +68,7 @@ bench-skin: install
 # time, so that a rebuild after an edit is incremental.
 SANITIZE_VENV ?= .venv-sanitize
 SANITIZE_TESTS ?= tests/test_rbf.py tests/test_csrbf.py tests/test_spatial.py tests/test_mesh.py \
-	tests/test_sparse.py tests/test_raster.py tests/test_skin_sim.py tests/test_bad_input.py tests/test_motion.py
+	tests/test_sparse.py tests/test_raster.py tests/test_skin_sim.py tests/test_bad_input.py tests/test_registration.py
 SANITIZE_RUN = LD_PRELOAD="$$($(CXX) -print-file-name=libasan.so) $$($(CXX) -print-file-name=libubsan.so)" \
 	ASAN_OPTIONS=detect_leaks=0:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
 	$(SANITIZE_VENV)/bin/python -m pytest -q -p no:cacheprovider

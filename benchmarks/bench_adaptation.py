@@ -156,7 +156,7 @@ def test_adaptation_table():
                  f" | {seconds:.2f} | {'; '.join(messages) or '-'} |")
     scan, landmarks, truth = scan_of("default", HOLES_SUBJECT)
     moved = landmarks.copy()
-    row = tpscore.landmarks.landmark_index(MOVED_LANDMARK)
+    row = tpscore.face.landmarks.landmark_index(MOVED_LANDMARK)
     moved[row] += np.array([10.0, 0.0, 0.0])
     result, per_level, final, seconds, messages = _run(template, scan, moved, truth, near)
     lines.append(f"| {MOVED_LANDMARK} moved 10 mm | {final:.2f} | {result.best_level} | "

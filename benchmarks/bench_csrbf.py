@@ -15,27 +15,15 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from tpscore import CSRBF
+from tpscore.datasets import face_point_cloud
 from tpscore.reference import csrbf as reference
 
 SIZES = [10_000, 40_000]
 NEIGHBOURS = 45
 
 
-def face_surface(n, seed=0, jitter=0.3, width=150.0, height=180.0):
-    rng = np.random.default_rng(seed)
-    cols = int(round(np.sqrt(n * width / height)))
-    rows = int(np.ceil(n / cols))
-    x, y = np.meshgrid(np.linspace(-width / 2, width / 2, cols), np.linspace(-height / 2, height / 2, rows))
-    spacing = width / (cols - 1)
-    x = x.ravel()[:n] + rng.uniform(-jitter, jitter, n) * spacing
-    y = y.ravel()[:n] + rng.uniform(-jitter, jitter, n) * spacing
-    z = 60 * np.exp(-(x**2 / (2 * 55**2) + y**2 / (2 * 70**2))) + 18 * np.exp(
-        -(x**2 / (2 * 9**2) + (y + 5) ** 2 / (2 * 16**2)))
-    return np.stack([x, y, z], axis=1)
-
-
 def problem(n):
-    centres = face_surface(n)
+    centres = face_point_cloud(n)
     support = float(np.sqrt(NEIGHBOURS * 150 * 180 * 1.15 / (n * np.pi)))
     values = np.stack([np.sin(centres[:, 0] / 20), np.cos(centres[:, 1] / 25), centres[:, 2] / 30], axis=1)
     return centres, values, support

@@ -18,6 +18,7 @@ import pytest
 from scipy.interpolate import griddata
 
 from tpscore import BntScan, read_bnt, resample_scan, write_bnt
+from shared_data import shared_dir
 
 SHAPE = (150, 150)
 SPACING = 0.7
@@ -27,15 +28,6 @@ CURVATURE = 2 * AMPLITUDE / WAVELENGTH**2   # bound on the Hessian of the height
 
 def height(x, y):
     return 20.0 + 0.1 * x - 0.05 * y + AMPLITUDE * np.sin(x / WAVELENGTH) * np.cos(y / WAVELENGTH)
-
-
-def shared_dir() -> Path | None:
-    env = os.environ.get("TPSCORE_SHARED")
-    candidates = ([Path(env)] if env else []) + [Path(__file__).resolve().parents[2] / "shared"]
-    for path in candidates:
-        if (path / "tools" / "make_scans.py").is_file():
-            return path
-    return None
 
 
 def synthetic_scan() -> BntScan:

@@ -37,6 +37,7 @@ import numpy as np
 
 from texture_ablations import ABLATIONS
 from tpscore.batch import TransferJob
+from shared_data import shared_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = Path(__file__).resolve().parent
@@ -66,14 +67,6 @@ def score_value(score: dict, key: str):
     record stores NaN as null."""
     value = score[_BATCH_NAMES.get(key, key)]
     return float("nan") if value is None else value
-
-
-def shared_dir() -> Path | None:
-    env = os.environ.get("TPSCORE_SHARED")
-    for path in ([Path(env)] if env else []) + [ROOT.parent / "shared"]:
-        if (path / "tools" / "make_scans.py").is_file() and (path / "data" / "ict-facekit").is_dir():
-            return path
-    return None
 
 
 def parse_subjects(text: str) -> list[int]:

@@ -14,6 +14,6 @@ def shared_dir() -> Path | None:
     candidates = [Path(env)] if env else []
     candidates.append(REPOSITORY.parent / "shared")
     for path in candidates:
-        if (path / "data" / "ict-facekit" / "face_model.npz").is_file():
+        if (path / "data" / "ict-facekit" / "face_model.npz").is_file() and (path / "tools" / "make_scans.py").is_file():
             return path
     return None

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from tpscore.face.landmarks import N_LANDMARKS
-from tpscore.physics import Head, LinearMuscle, SphincterMuscle, SurfacePoint
+from tpscore.physics import Head, SkinLinearMuscle, SkinSphincterMuscle, SurfacePoint
 from tpscore.physics.system import SkinArrays, rim_edges
 from tpscore.spatial import MeshSurface
 
@@ -40,12 +40,12 @@ def surface_point(head: Head, x: float, y: float) -> SurfacePoint:
 
 
 def linear_muscle(head: Head, name="pull", attachment=(0.0, 8.0), insertion=(0.0, -2.0), force=0.5, **kw):
-    return LinearMuscle(name, surface_point(head, *attachment), surface_point(head, *insertion), ("upper_face",),
+    return SkinLinearMuscle(name, surface_point(head, *attachment), surface_point(head, *insertion), ("upper_face",),
                         force, **kw)
 
 
 def sphincter(name="ring", centre=(0.0, 0.0, 0.0), force=0.3):
-    return SphincterMuscle(name, np.array(centre), np.array([[6.0, 0.0, 0.0], [0.0, 4.0, 0.0]]), ("upper_face",),
+    return SkinSphincterMuscle(name, np.array(centre), np.array([[6.0, 0.0, 0.0], [0.0, 4.0, 0.0]]), ("upper_face",),
                            force)
 
 

@@ -118,7 +118,7 @@ CASES = [
     ("normals-complex-vertices", lambda t: tpscore.vertex_normals(TRIANGLE[0] + 1j, TRIANGLE[1]), ValueError,
      "complex"),
     ("sparse-complex-rhs", lambda t: tpscore.SparseCholesky(sp.eye(2)).solve([1j, 0]), ValueError, "complex"),
-    ("landmarks-complex", lambda t: tpscore.landmarks.as_landmarks(np.zeros((22, 3)) + 1j), ValueError,
+    ("landmarks-complex", lambda t: tpscore.face.landmarks.as_landmarks(np.zeros((22, 3)) + 1j), ValueError,
      "complex"),
     ("resample-complex", lambda t: resample_scan(_scans()[0].points + 0j), ValueError, "complex"),
     ("facegrid-complex", lambda t: _grids()[0].with_points(_grids()[0].points + 0j), ValueError, "complex"),

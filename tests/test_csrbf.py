@@ -11,26 +11,12 @@ from hypothesis import strategies as st
 import tpscore
 from tpscore import csrbf
 from tpscore.csrbf import CSRBF, ConvergenceError
+from tpscore.datasets import face_point_cloud
 from tpscore.reference import csrbf as reference
 
 
-def face_surface(n, seed=0, jitter=0.3, width=150.0, height=180.0):
-    """n points on a face-like height field (a dome and a nose-like bump), on a jittered
-    grid in x, y: quasi-uniform, like the vertices of a resampled scan. mm."""
-    rng = np.random.default_rng(seed)
-    cols = int(round(np.sqrt(n * width / height)))
-    rows = int(np.ceil(n / cols))
-    x, y = np.meshgrid(np.linspace(-width / 2, width / 2, cols), np.linspace(-height / 2, height / 2, rows))
-    spacing = width / (cols - 1)
-    x = x.ravel()[:n] + rng.uniform(-jitter, jitter, n) * spacing
-    y = y.ravel()[:n] + rng.uniform(-jitter, jitter, n) * spacing
-    z = 60 * np.exp(-(x**2 / (2 * 55**2) + y**2 / (2 * 70**2))) + 18 * np.exp(
-        -(x**2 / (2 * 9**2) + (y + 5) ** 2 / (2 * 16**2)))
-    return np.stack([x, y, z], axis=1)
-
-
 def support_for(n, neighbours, area=150 * 180 * 1.15):
-    """Support radius giving about `neighbours` centres within it on face_surface(n)."""
+    """Support radius giving about `neighbours` centres within it on face_point_cloud(n)."""
     return float(np.sqrt(neighbours * area / (n * np.pi)))
 
 
@@ -40,7 +26,7 @@ def smooth_values(points):
 
 @pytest.fixture(scope="module")
 def surface():
-    points = face_surface(1500, seed=1)
+    points = face_point_cloud(1500, seed=1)
     return points, support_for(1500, 40), smooth_values(points)
 
 
@@ -106,7 +92,7 @@ def assert_matches_reference(points, values, support, **options):
        quadric=st.booleans(), smoothing=st.sampled_from([0.0, 0.01, 1.0]),
        preconditioner=st.sampled_from(["ilu", "diagonal"]), k=st.integers(1, 3))
 def test_matches_reference(n, seed, neighbours, quadric, smoothing, preconditioner, k):
-    points = face_surface(n, seed=seed, jitter=0.25)
+    points = face_point_cloud(n, seed=seed, jitter=0.25)
     rng = np.random.default_rng(seed)
     values = rng.normal(size=(n, k)) + smooth_values(points)[:, :k]
     assert_matches_reference(points, values, support_for(n, neighbours), quadric=quadric,
@@ -138,8 +124,8 @@ def test_reproduces_constant_and_linear_fields_approximately():
     # Measured with ~60 neighbours: constant 3.2% max / 0.37% rms of the constant,
     # linear 0.47% max / 0.08% rms of the field's range; bounds at ~1.5x.
     n = 3000
-    points = face_surface(n)
-    queries = face_surface(n, seed=5, jitter=0.5)
+    points = face_point_cloud(n)
+    queries = face_point_cloud(n, seed=5, jitter=0.5)
     queries = queries[(np.abs(queries[:, 0]) < 55) & (np.abs(queries[:, 1]) < 70)]  # inside the data
 
     def fields(p):
@@ -166,7 +152,7 @@ def test_quadric_orders_fall_back_when_neighbours_are_few():
     np.testing.assert_array_equal(lonely.quadric_orders, 0)
     collinear = CSRBF(line, line[:, :1], support=3.5, quadric=True, normals=np.tile([0, 0, 1.0], (10, 1)))
     np.testing.assert_array_equal(collinear.quadric_orders, 0)  # rank 2 in (1, u, v): not linear
-    plane = face_surface(400, seed=2)
+    plane = face_point_cloud(400, seed=2)
     plane[:, 2] = 0
     planar = CSRBF(plane, plane[:, :2], support_for(400, 30), quadric=True)
     assert (planar.quadric_orders == 2).mean() > 0.95

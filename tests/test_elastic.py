@@ -355,7 +355,7 @@ def test_ict_face_reconstructs_expressions(shared):
 def test_cli_fits_and_clones_npz_inputs_with_pictures(procedural_face, tmp_path):
     import argparse
 
-    from tpscore.cli.elastic import add_elastic_parser
+    from tpscore.cli.elastic import add_elastic_parser, elastic_command
 
     vertices, faces, landmarks = procedural_face
     source_face = ElasticFace(vertices, faces, landmarks=landmarks)
@@ -367,7 +367,7 @@ def test_cli_fits_and_clones_npz_inputs_with_pictures(procedural_face, tmp_path)
     add_elastic_parser(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(["elastic", "--source", str(tmp_path / "src.npz"), "--target", str(tmp_path / "tgt.npz"),
                               "--out", str(tmp_path / "out"), "--quiet"])
-    assert args.func(args) == 0
+    assert elastic_command(args) == 0
     result = np.load(tmp_path / "out" / "elastic.npz")
     # Exactly representable examples: recovered to rounding; a 1.1x scaled copy of the
     # face takes 1.1x the displacements.
@@ -376,4 +376,4 @@ def test_cli_fits_and_clones_npz_inputs_with_pictures(procedural_face, tmp_path)
     assert (tmp_path / "out" / "a.png").is_file() and (tmp_path / "out" / "report.md").is_file()
     bad = parser.parse_args(["elastic", "--source", str(tmp_path / "src.npz"), "--out", str(tmp_path / "x")])
     with pytest.raises(ValueError, match="--target is needed"):
-        bad.func(bad)
+        elastic_command(bad)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from . import datasets, physics, render, viewer
 from ._version import __version__
-from .face import landmarks
 from ._threads import max_threads, num_threads, set_num_threads
 from .face.average_face import AverageFace, build_average_face, load_average_face
 from .expression import (

@@ -54,7 +54,6 @@ def add_elastic_parser(subparsers) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--no-pictures", action="store_true", help="skip the PNG pictures")
     p.add_argument("--quiet", action="store_true")
-    p.set_defaults(func=elastic_command)
 
 
 def _load_npz(path: str, fields: tuple[str, ...]) -> dict:

@@ -334,11 +334,6 @@ class MuscleModel:
     def emotions(self) -> tuple[str, ...]:
         return tuple(self._emotions)
 
-    @property
-    def unit_displacements(self) -> np.ndarray:
-        """(muscles, k, 3) control-point displacement per unit contraction (mm)."""
-        return self._unit
-
     def _vector(self, contractions, name: str = "contractions") -> np.ndarray:
         if isinstance(contractions, Mapping):
             vector = np.zeros(len(self._names))

@@ -6,7 +6,7 @@ from __future__ import annotations
 from .fitting import carry_head, deform_from_vertices, fit_head
 from .head import Head, build_template, load_template
 from .layers import SkinLayers, SkinMaterial, build_layers
-from .muscles import LinearMuscle, SphincterMuscle, SurfacePoint, place_muscles
+from .muscles import SkinLinearMuscle, SkinSphincterMuscle, SurfacePoint, place_muscles
 from .simulation import SimulationError, SimulationOptions, SkinModel, SkinSimulation, SkinWarning
 from .system import SkinArrays
 
@@ -17,8 +17,8 @@ __all__ = [
     "SkinMaterial",
     "SkinLayers",
     "build_layers",
-    "LinearMuscle",
-    "SphincterMuscle",
+    "SkinLinearMuscle",
+    "SkinSphincterMuscle",
     "SurfacePoint",
     "place_muscles",
     "SkinModel",

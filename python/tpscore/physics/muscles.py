@@ -44,8 +44,8 @@ from ..spatial import MeshSurface
 
 __all__ = [
     "SurfacePoint",
-    "LinearMuscle",
-    "SphincterMuscle",
+    "SkinLinearMuscle",
+    "SkinSphincterMuscle",
     "place_muscles",
     "read_muscle_file",
     "muscle_weights",
@@ -89,7 +89,7 @@ def _regions(value, name):
 
 
 @dataclass(frozen=True)
-class LinearMuscle:
+class SkinLinearMuscle:
     """A linear muscle from a bony attachment to a skin insertion.
 
     Parameters
@@ -138,7 +138,7 @@ class LinearMuscle:
 
 
 @dataclass(frozen=True)
-class SphincterMuscle:
+class SkinSphincterMuscle:
     """An elliptical sphincter muscle.
 
     Parameters
@@ -210,7 +210,7 @@ def muscle_weights(muscle, points: np.ndarray, allowed: np.ndarray, *, attachmen
 
     Parameters
     ----------
-    muscle : LinearMuscle or SphincterMuscle
+    muscle : SkinLinearMuscle or SkinSphincterMuscle
     points : (n, 3) ndarray
         Rest positions of the candidate particles (the hypodermal layer).
     allowed : (n,) bool ndarray
@@ -227,7 +227,7 @@ def muscle_weights(muscle, points: np.ndarray, allowed: np.ndarray, *, attachmen
     ValueError
         If no allowed particle lies in the muscle's zone.
     """
-    if isinstance(muscle, LinearMuscle):
+    if isinstance(muscle, SkinLinearMuscle):
         axis = insertion - attachment
         length = float(np.linalg.norm(axis))
         if length <= 0:
@@ -320,7 +320,7 @@ def place_muscles(vertices, faces, skull_vertices, landmarks, definitions=None) 
 
     Returns
     -------
-    tuple of LinearMuscle and SphincterMuscle
+    tuple of SkinLinearMuscle and SkinSphincterMuscle
     """
     data = read_muscle_file() if definitions is None else definitions
     frame = face_frame(landmarks)
@@ -338,7 +338,7 @@ def place_muscles(vertices, faces, skull_vertices, landmarks, definitions=None) 
                                                            f"muscle {name!r} attachment"), f"muscle {name!r} attachment")
                 insertion = _project(skin, frame, _place(entry["insertion"], landmarks, frame,
                                                          f"muscle {name!r} insertion"), f"muscle {name!r} insertion")
-                muscles.append(LinearMuscle(name, attachment, insertion, regions, force, bone,
+                muscles.append(SkinLinearMuscle(name, attachment, insertion, regions, force, bone,
                                             entry.get("angular_zone_deg", 30.0), entry.get("falloff_mm", 12.0)))
             elif kind == "sphincter":
                 centre_point = _project(skin, frame, _place(entry["epicentre"], landmarks, frame,
@@ -350,7 +350,7 @@ def place_muscles(vertices, faces, skull_vertices, landmarks, definitions=None) 
                 for pair, margin, direction in zip(pairs, margins, frame.axes[:2]):
                     ends = [anchor_point(landmarks, {p: 1.0}, f"sphincter {name!r} axes") for p in pair]
                     axes.append((0.5 * np.linalg.norm(ends[0] - ends[1]) + float(margin)) * direction)
-                muscles.append(SphincterMuscle(name, centre, np.stack(axes), regions, force,
+                muscles.append(SkinSphincterMuscle(name, centre, np.stack(axes), regions, force,
                                                entry.get("falloff", 0.5), tuple(tuple(p) for p in pairs), bone))
             else:
                 raise ValueError(f"muscle {name!r}: type must be 'linear' or 'sphincter', got {kind!r}")
