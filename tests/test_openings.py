@@ -134,3 +134,22 @@ def test_whole_expressions_carry_all_the_measured_motion(scans):
     assert set("+".join(published.animation.labels).split("+")) == {"AU1", "AU2", "AU5", "AU26"}
     with pytest.raises(ValueError, match="no recipe"):
         tpscore.transfer(a, b, c, "all", options=tpscore.TransferOptions.published())
+
+
+def test_a_lid_rim_pulls_across_the_eye_but_leaves_its_slide_along_it_free(scans):
+    # The edge of an opening shows how far across it a rim went, not how far it slid
+    # along the edge: a rim pair's slide along the chord must not pull the correction.
+    from tpscore.expression.cut_motion import fit_local_correction
+
+    face = _normalised(scans["source"][1])
+    eye = find_openings(face)["left eye"]
+    grid = face.grid
+    rim_from = grid.points.reshape(-1, 3)[eye.rim(grid.points, grid.mask, "bottom")]
+    along, up = eye._axes()
+    rim_to = rim_from.copy()
+    rim_to[:, :2] += 2.0 * along + 1.0 * up
+    correction = fit_local_correction(eye, "bottom", grid.points[grid.mask], lambda p: np.zeros(np.shape(p)),
+                                      face.surface(), rim_from, rim_to)
+    moved = correction(rim_from)[:, :2]
+    assert np.median(moved @ up) > 0.5          # pulled most of the way across
+    assert abs(np.median(moved @ along)) < 0.2  # not slid along by the pairs

@@ -52,6 +52,9 @@ LOCAL_BENDING = 0.3
 LOCAL_REST = 0.01
 RIM_WEIGHT = 20.0
 LOCAL_ITERATIONS = 6
+#: How many times a moved eye's correction is fitted, each time with the texture matched
+#: again after the expressive image is warped back by the side's motion so far.
+LID_TEXTURE_ROUNDS = 2
 # Pairs farther than this many robust scales from their target do not pull; the robust
 # scale is at least _LOCAL_SCALE_FLOOR_MM.
 _LOCAL_TUKEY = 3.0
@@ -122,10 +125,16 @@ def fit_local_correction(opening: Opening, side: str, points, motion, surface: M
     fixed = LOCAL_BENDING * sp.block_diag([lattice.bending()] * 3) + LOCAL_REST * sp.identity(3 * n)
     fixed_rhs = np.zeros(3 * n)
     if rim_from is not None and len(rim_from):
+        # A rim's edge shows how far across the opening it went, not how far it slid
+        # along the edge: its pairs pull across the chord and in depth only, and the
+        # slide comes from the skin beside it.
         rim_basis = lattice.basis(rim_from[:, :2]).multiply(correction.weight(rim_from)[:, None]).tocsr()
         residual = rim_to - rim_from - motion(rim_from)
-        fixed = fixed + RIM_WEIGHT * sp.block_diag([rim_basis.T @ rim_basis] * 3)
-        fixed_rhs = RIM_WEIGHT * np.concatenate([rim_basis.T @ residual[:, k] for k in range(3)])
+        along_chord = np.append(opening._axes()[0], 0.0)
+        across = np.eye(3) - np.outer(along_chord, along_chord)
+        gram = rim_basis.T @ rim_basis
+        fixed = fixed + RIM_WEIGHT * sp.bmat([[across[a, b] * gram for b in range(3)] for a in range(3)])
+        fixed_rhs = RIM_WEIGHT * np.concatenate([rim_basis.T @ (residual @ across[a]) for a in range(3)])
 
     normals_of = face_normals(surface.vertices, surface.faces)
     values = np.zeros((n, 3))
@@ -234,10 +243,6 @@ def register_cut(neutral, expressive, openings: list[Opening], register, texture
     grid = neutral.grid
     surface = expressive.surface()
     weights = _side_weights(openings, grid.points)
-    texture_targets = texture_weights = None
-    if texture is not None:
-        texture_targets = texture.targets[grid.mask]
-        texture_weights = texture_weight * texture.confidence[grid.mask]
     landmark_weight = [w.reshape(-1)[np.maximum(grid.landmark_vertices, 0)] for w in weights]
     closure = {}
     for opening in openings:
@@ -245,25 +250,42 @@ def register_cut(neutral, expressive, openings: list[Opening], register, texture
             moved = opening.seen_in(expressive.grid.points, expressive.grid.mask)
             height = opening.top - opening.bottom
             closure[opening.name] = np.where(np.isfinite(moved.top), (opening.top - moved.top) / height, 1.0)
+    eyes = [opening for opening in openings if opening.name != "mouth"]
     fields = []
     for side, weight, keep in zip(("top", "bottom"), weights, landmark_weight):
         landmarks = np.where((keep > 0.5)[:, None], neutral.landmarks, np.nan)
         motion = register(weight, landmarks, None)
-        corrected = _Corrected(motion)
-        for opening in openings:
-            if opening.name == "mouth":
-                continue
-            rim = opening.rim(grid.points, grid.mask, side)
-            rim_from = grid.points.reshape(-1, 3)[rim]
-            moved = opening.seen_in(expressive.grid.points, expressive.grid.mask)
-            rim_to = _onto(surface, opening.rim_targets(rim_from, moved, side), expressive.grid.points)
-            found = np.isfinite(rim_to).all(axis=1)
-            correction = fit_local_correction(opening, side, grid.points[grid.mask], motion, surface,
-                                              rim_from[found], rim_to[found], texture_targets, texture_weights)
-            if correction is not None:
-                corrected.corrections.append(correction)
-        fields.append(corrected if corrected.corrections else motion)
+        corrections = []
+        for _ in range(LID_TEXTURE_ROUNDS if eyes else 0):
+            side_targets = side_weights = None
+            if texture is not None:
+                # The flow found again with the expressive image warped back by this
+                # side's motion: a lid's skin travels farther than the flow finds alone.
+                current = _Corrected(motion, corrections)(grid.points.reshape(-1, 3)).reshape(grid.points.shape)
+                side_texture = texture.refined(current)
+                side_targets = side_texture.targets[grid.mask]
+                side_weights = texture_weight * side_texture.confidence[grid.mask]
+            corrections = _lid_corrections(eyes, side, neutral, expressive, surface, motion, side_targets,
+                                           side_weights)
+        fields.append(_Corrected(motion, corrections) if corrections else motion)
     return CutMotion(fields[0], fields[1], list(openings), texture, closure)
+
+
+def _lid_corrections(eyes, side, neutral, expressive, surface, motion, texture_targets, texture_weights):
+    """Each moved eye's local correction of one side's motion, pulled by where its rim
+    went and by the texture matches."""
+    grid = neutral.grid
+    corrections = []
+    for opening in eyes:
+        rim_from = grid.points.reshape(-1, 3)[opening.rim(grid.points, grid.mask, side)]
+        moved = opening.seen_in(expressive.grid.points, expressive.grid.mask)
+        rim_to = _onto(surface, opening.rim_targets(rim_from, moved, side), expressive.grid.points)
+        found = np.isfinite(rim_to).all(axis=1)
+        correction = fit_local_correction(opening, side, grid.points[grid.mask], motion, surface,
+                                          rim_from[found], rim_to[found], texture_targets, texture_weights)
+        if correction is not None:
+            corrections.append(correction)
+    return corrections
 
 
 #: Knots of an opening's chord at which its edges pair two faces (away from the corners,
