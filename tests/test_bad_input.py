@@ -67,6 +67,12 @@ def _transfer(*faces, au="12", magnitude=1.0, **kw):
     return tpscore.transfer(*grids, au, magnitude, **kw)
 
 
+@lru_cache(maxsize=None)
+def _cloud(n):
+    # n points in a 10 mm cube: a support or radius of 1 m covers every pair
+    return np.random.default_rng(7).uniform(0, 10, size=(n, 3))
+
+
 def _bnt_header(nrows, ncols, len2=None, name=b"x.png", zmin=-1e9):
     len2 = 5 * nrows * ncols if len2 is None else len2
     return struct.pack("<HHdH", nrows, ncols, zmin, len(name)) + name + struct.pack("<I", len2)
@@ -104,7 +110,8 @@ def _turned(grid, rotation=None, unit=1.0):
 
 # --------------------------------------------------------------------------- the battery
 
-# (id, call taking the test's tmp_path, the exception, a word of its message)
+# (id, call taking the test's tmp_path, the exception, a word of its message or a tuple
+# of words it must all contain: for a size, the argument, the size needed and the limit)
 CASES = [
     # complex numbers: refused, never cast with the imaginary part dropped
     ("tps-complex-centres", lambda t: tpscore.TPS(SOURCE + 1j, TARGET), ValueError, "complex"),
@@ -138,6 +145,14 @@ CASES = [
     ("bnt-endless-stream", lambda t: io.read_bnt("/dev/zero"), ValueError, "empty"),
     ("bnt-header-asks-for-too-much", lambda t: io.read_bnt(_write(t, "big.bnt", _bnt_header(4097, 4097))),
      ValueError, "larger than"),
+    ("csrbf-support-covering-40,000-centres", lambda t: tpscore.CSRBF(_cloud(40_000), np.zeros(40_000), 1e3),
+     ValueError, ("support:", "1,600,000,000 nonzeros", "limit of 268,435,456")),
+    ("kdtree-radius-covering-40,000-points",
+     lambda t: tpscore.KDTree(_cloud(40_000)).query_radius_csr(_cloud(40_000), 1e3), ValueError,
+     ("r:", "1,600,000,000 neighbours", "limit of 268,435,456 pairs")),
+    ("kdtree-radius-lists-covering-40,000-points",
+     lambda t: tpscore.KDTree(_cloud(40_000)).query_radius(_cloud(40_000), 1e3), ValueError,
+     ("r:", "1,600,000,000 neighbours", "limit of 268,435,456 pairs")),
     # counts the core takes as a C int: refused in Python, not a TypeError from the binding
     ("kdtree-leaf-size-2**31", lambda t: tpscore.KDTree(SOURCE, leaf_size=2**31), ValueError, "leaf_size"),
     ("kdtree-k-2**31", lambda t: tpscore.KDTree(SOURCE).query(SOURCE, k=2**31), ValueError, "k must"),
@@ -256,9 +271,12 @@ CASES = [
 
 @pytest.mark.parametrize("call, error, word", [pytest.param(*case[1:], id=case[0]) for case in CASES])
 def test_bad_input_is_refused_with_a_message_that_says_why(tmp_path, call, error, word):
-    with pytest.raises(error, match=word.replace("*", r"\*")) as raised:
+    words = (word,) if isinstance(word, str) else word
+    with pytest.raises(error, match=words[0].replace("*", r"\*")) as raised:
         call(tmp_path)
     assert type(raised.value) is error or issubclass(type(raised.value), error)
+    for other in words[1:]:
+        assert other in str(raised.value), f"{other!r} is not in the message {str(raised.value)!r}"
 
 
 def test_every_file_error_names_the_file(tmp_path):

@@ -23,12 +23,18 @@ __all__ = [
     "as_path",
     "check_finite",
     "check_real",
+    "gib",
     "MAX_DENSE_ELEMENTS",
+    "MAX_SPARSE_ENTRIES",
     "MAX_COORDINATE",
 ]
 
 # A dense temporary larger than this (in float64 elements, 2 GiB) is refused or chunked.
 MAX_DENSE_ELEMENTS = 2**28
+
+#: The most entries of a sparse result (the pairs a radius query returns, the nonzeros
+#: of a CSRBF matrix): the same 2 GiB budget, for each of its float64 and int64 arrays.
+MAX_SPARSE_ENTRIES = MAX_DENSE_ELEMENTS
 
 #: Largest coordinate magnitude (mm) a kernel accepts. Millimetres that far out are
 #: quantised to 0.125 mm by float64 itself, so no face geometry survives there; and the
@@ -78,6 +84,11 @@ def as_points(points, name: str = "points", *, dim: int = 3, allow_empty: bool =
                 f"{name} has coordinates beyond +-{MAX_COORDINATE:.0e} mm (first at row {row}: "
                 f"{array[row].tolist()}); tpscore works in millimetres")
     return np.ascontiguousarray(array)
+
+
+def gib(n_bytes: float) -> str:
+    """A size in bytes as GiB, for messages."""
+    return f"{n_bytes / 2**30:.1f} GiB"
 
 
 def as_array(values, name: str) -> np.ndarray:

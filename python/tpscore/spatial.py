@@ -12,7 +12,7 @@ from typing import NamedTuple
 import numpy as np
 
 from . import _core
-from ._validation import MAX_DENSE_ELEMENTS, as_count, as_faces, as_points
+from ._validation import MAX_DENSE_ELEMENTS, MAX_SPARSE_ENTRIES, as_count, as_faces, as_points, gib
 
 __all__ = [
     "KDTree",
@@ -21,6 +21,30 @@ __all__ = [
     "RayHits",
     "closest_point_on_mesh",
 ]
+
+
+#: The most (query, point) pairs :meth:`KDTree.query_radius_csr` returns: its int64
+#: indices and float64 distances each stay within 2 GiB.
+MAX_RADIUS_PAIRS = MAX_SPARSE_ENTRIES
+
+
+# In the first, coarse count of a radius query's size, a node of the tree of at most
+# this many points that the ball touches counts whole: an upper bound found in a few
+# percent of the query's time (a ball of 50 neighbours touches some nodes of 256).
+_COARSE_NODE_POINTS = 256
+
+
+def _pairs_beyond(tree, queries: np.ndarray, radius: float, workers: int, limit: int) -> int | None:
+    """The number of (query, point) pairs within `radius` on the core's kd-tree `tree`
+    when it passes `limit`, else None, counted before anything is collected: nothing
+    when m * n cannot pass it, then a cheap upper bound, the exact count only when the
+    bound passes."""
+    if len(queries) * tree.size <= limit:
+        return None
+    if int(tree.count_radius(queries, radius, workers, _COARSE_NODE_POINTS).sum()) <= limit:
+        return None
+    pairs = int(tree.count_radius(queries, radius, workers).sum())
+    return pairs if pairs > limit else None
 
 
 def _int64(array: np.ndarray) -> np.ndarray:
@@ -184,14 +208,56 @@ class KDTree:
         indices : ndarray of int64, shape (offsets[-1],)
         distances : ndarray of float64, shape (offsets[-1],)
             Distances (mm) matching ``indices``.
+
+        Raises
+        ------
+        ValueError
+            If the query would return more than :data:`MAX_RADIUS_PAIRS` pairs (2**28:
+            each of the two arrays within 2 GiB). They are counted before anything is
+            collected (only when m * n passes the limit: a cheap upper bound first,
+            then :meth:`count_radius`).
         """
         queries = as_points(points, "points")
         radius = _radius(r, "r")
         if not np.isfinite(radius):
             raise ValueError("r must be finite; use query with k=n for all points")
+        workers = _workers(workers)
+        pairs = _pairs_beyond(self._tree, queries, radius, workers, MAX_RADIUS_PAIRS)
+        if pairs is not None:
+            raise ValueError(
+                f"r: {len(queries):,} query points have {pairs:,} neighbours within r = {radius:g} mm, "
+                f"more than the limit of {MAX_RADIUS_PAIRS:,} pairs a radius query returns (its index "
+                f"and distance arrays would take {gib(8.0 * pairs)} each); use a smaller r or pass "
+                "fewer points at a time")
         offsets, indices, distances = self._tree.query_radius(queries, radius, bool(sort),
-                                                              _workers(workers))
+                                                              workers)
         return _int64(offsets), _int64(indices), distances
+
+    def count_radius(self, points, r: float, *, workers: int = -1) -> np.ndarray:
+        """The number of indexed points within distance ``r`` of each query point.
+
+        What :meth:`query_radius_csr` would find, counted without collecting it (like
+        ``return_length=True`` of :meth:`scipy.spatial.cKDTree.query_ball_point`), so
+        the size of a radius query can be judged before it is made.
+
+        Parameters
+        ----------
+        points : array_like, shape (m, 3)
+            Query points (mm), finite.
+        r : float
+            Radius (mm), >= 0, finite; a point at distance exactly ``r`` counts.
+        workers : int, default -1
+            Threads to use: -1 for all, 1 for serial.
+
+        Returns
+        -------
+        ndarray of int64, shape (m,)
+        """
+        queries = as_points(points, "points")
+        radius = _radius(r, "r")
+        if not np.isfinite(radius):
+            raise ValueError(f"r must be finite; every query point has all {self.n} points within r = inf")
+        return _int64(self._tree.count_radius(queries, radius, _workers(workers)))
 
     def query_radius(self, points, r: float, *, return_distance: bool = False,
                      sort: bool = False, workers: int = -1):
