@@ -73,6 +73,10 @@ def _cloud(n):
     return np.random.default_rng(7).uniform(0, 10, size=(n, 3))
 
 
+# a billion query points that cost nothing until something copies them
+BILLION = np.broadcast_to(np.zeros(3), (10**9, 3))
+
+
 def _bnt_header(nrows, ncols, len2=None, name=b"x.png", zmin=-1e9):
     len2 = 5 * nrows * ncols if len2 is None else len2
     return struct.pack("<HHdH", nrows, ncols, zmin, len(name)) + name + struct.pack("<I", len2)
@@ -153,6 +157,17 @@ CASES = [
     ("kdtree-radius-lists-covering-40,000-points",
      lambda t: tpscore.KDTree(_cloud(40_000)).query_radius(_cloud(40_000), 1e3), ValueError,
      ("r:", "1,600,000,000 neighbours", "limit of 268,435,456 pairs")),
+    ("kdtree-10**9-points-as-a-broadcast-view", lambda t: tpscore.KDTree(BILLION), ValueError,
+     ("points has 1,000,000,000 rows", "22.4 GiB", "at most 89,478,485")),
+    ("kdtree-10**9-queries", lambda t: tpscore.KDTree(SOURCE).query(BILLION, k=3), ValueError,
+     ("points:", "3,000,000,000 output slots", "44.7 GiB", "limit 268,435,456")),
+    ("tps-10**9-queries", lambda t: _tps()(BILLION), ValueError, ("points:", "22.4 GiB", "268,435,456 values")),
+    ("tps-10**9-displacements", lambda t: _tps().displacement(BILLION), ValueError,
+     ("points:", "22.4 GiB", "268,435,456 values")),
+    ("rbf-10**9-queries", lambda t: tpscore.RBF(SOURCE, TARGET[:, 0])(BILLION), ValueError,
+     ("points:", "1,000,000,000 x 1", "268,435,456 values")),
+    ("csrbf-10**9-queries", lambda t: tpscore.CSRBF(SOURCE, TARGET, 50.0)(BILLION), ValueError,
+     ("points:", "22.4 GiB", "268,435,456 values")),
     # counts the core takes as a C int: refused in Python, not a TypeError from the binding
     ("kdtree-leaf-size-2**31", lambda t: tpscore.KDTree(SOURCE, leaf_size=2**31), ValueError, "leaf_size"),
     ("kdtree-k-2**31", lambda t: tpscore.KDTree(SOURCE).query(SOURCE, k=2**31), ValueError, "k must"),

@@ -23,9 +23,13 @@ __all__ = [
     "as_path",
     "check_finite",
     "check_real",
+    "check_rows",
+    "row_count",
+    "check_result_size",
     "gib",
     "MAX_DENSE_ELEMENTS",
     "MAX_SPARSE_ENTRIES",
+    "MAX_POINTS",
     "MAX_COORDINATE",
 ]
 
@@ -35,6 +39,10 @@ MAX_DENSE_ELEMENTS = 2**28
 #: The most entries of a sparse result (the pairs a radius query returns, the nonzeros
 #: of a CSRBF matrix): the same 2 GiB budget, for each of its float64 and int64 arrays.
 MAX_SPARSE_ENTRIES = MAX_DENSE_ELEMENTS
+
+#: The most rows of an (n, 3) point array a kernel copies: 2 GiB of float64 coordinates
+#: (89,478,485 points).
+MAX_POINTS = MAX_DENSE_ELEMENTS // 3
 
 #: Largest coordinate magnitude (mm) a kernel accepts. Millimetres that far out are
 #: quantised to 0.125 mm by float64 itself, so no face geometry survives there; and the
@@ -89,6 +97,42 @@ def as_points(points, name: str = "points", *, dim: int = 3, allow_empty: bool =
 def gib(n_bytes: float) -> str:
     """A size in bytes as GiB, for messages."""
     return f"{n_bytes / 2**30:.1f} GiB"
+
+
+def row_count(values) -> int | None:
+    """len() of an array-like's first axis without converting it (a broadcast view of
+    10^9 rows is free until it is copied), or None when it has no such axis."""
+    shape = getattr(values, "shape", None)
+    if shape is not None:
+        try:
+            return int(shape[0]) if len(shape) >= 1 else None
+        except (TypeError, ValueError, IndexError):  # not an array's shape: as_points says why
+            return None
+    # a list is measured without converting it (as_points converts it once, later)
+    return len(values) if isinstance(values, (list, tuple)) else None
+
+
+def check_rows(points, name: str, most: int, what: str) -> None:
+    """Refuse, before (n, 3) `points` are converted or copied, more than `most` rows: a
+    ValueError naming `name`, the rows given, their size and the limit (`what` says
+    why the limit is there)."""
+    rows = row_count(points)
+    if rows is not None and rows > most:
+        raise ValueError(f"{name} has {rows:,} rows ({gib(24.0 * rows)} of float64 coordinates); at most "
+                         f"{most:,} ({gib(24.0 * most)}) are accepted: {what}")
+
+
+def check_result_size(points, columns: int, name: str = "points", *, hint: str = "") -> None:
+    """Refuse, before `points` is converted, a query whose (m, columns) float64 result
+    would pass the dense-array budget (:data:`MAX_DENSE_ELEMENTS`, 2 GiB)."""
+    rows = row_count(points)
+    if rows is None or columns <= 0 or rows * columns <= MAX_DENSE_ELEMENTS:
+        return
+    most = max(1, MAX_DENSE_ELEMENTS // columns)
+    raise ValueError(
+        f"{name}: {rows:,} query points would give a {rows:,} x {columns} float64 result "
+        f"({gib(8.0 * rows * columns)}), more than the limit of {MAX_DENSE_ELEMENTS:,} values "
+        f"({gib(8.0 * MAX_DENSE_ELEMENTS)}); pass at most {most:,} points at a time{hint}")
 
 
 def as_array(values, name: str) -> np.ndarray:

@@ -22,7 +22,7 @@ import numpy as np
 
 from . import _core
 from .spatial import _pairs_beyond
-from ._validation import MAX_SPARSE_ENTRIES, as_array, as_points, as_positive, as_values, gib
+from ._validation import MAX_SPARSE_ENTRIES, as_array, as_points, as_positive, as_values, check_result_size, gib
 
 __all__ = ["CSRBF", "ConvergenceError", "wendland"]
 
@@ -214,7 +214,14 @@ class CSRBF:
         -------
         ndarray, shape (m, k), or (m,) if the values were 1-D
             The field; 0 where no centre is within the support.
+
+        Raises
+        ------
+        ValueError
+            Bad points, or an (m, k) result above 2 GiB (refused before the points are
+            converted: evaluate in chunks of rows).
         """
+        check_result_size(points, self._coefficients.shape[1])
         points = as_points(points, "points")
         result = self._fit.evaluate(points)
         return result[:, 0] if self._one_dimensional else result

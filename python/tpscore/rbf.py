@@ -44,7 +44,7 @@ import math
 import numpy as np
 
 from . import _core
-from ._validation import MAX_DENSE_ELEMENTS, as_points, as_positive, as_values
+from ._validation import MAX_DENSE_ELEMENTS, as_points, as_positive, as_values, check_result_size
 
 __all__ = ["RBF", "TPS", "RBF_KERNELS"]
 
@@ -323,7 +323,15 @@ class RBF:
         -------
         numpy.ndarray, shape (m, k)
             f at each point (k columns even when the values were 1-D).
+
+        Raises
+        ------
+        ValueError
+            Bad points, a point where f overflows, or m * k above the dense-array
+            budget (``_validation.MAX_DENSE_ELEMENTS``, 2 GiB of result), refused
+            before the points are converted; evaluate in chunks of rows instead.
         """
+        check_result_size(points, self._n_values)  # before the points are converted
         queries = as_points(points, "points")
         result = np.empty((len(queries), self._n_values))
         # the kernel checks each row for overflow as it writes it
@@ -345,11 +353,17 @@ class RBF:
         -------
         numpy.ndarray, shape (m, 3)
             f(x) - x in mm.
+
+        Raises
+        ------
+        ValueError
+            As :meth:`__call__` (a result of at most 2 GiB: 89,478,485 points).
         """
         if self._n_values != 3:
             raise ValueError(
                 f"displacement needs values with 3 columns (a map of 3D points), "
                 f"this RBF has {self._n_values}")
+        check_result_size(points, 3)
         queries = as_points(points, "points")
         result = np.empty((len(queries), 3))
         _check_overflow(self._model.displacement_into(queries, result), queries)

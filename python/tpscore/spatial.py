@@ -12,7 +12,8 @@ from typing import NamedTuple
 import numpy as np
 
 from . import _core
-from ._validation import MAX_DENSE_ELEMENTS, MAX_SPARSE_ENTRIES, as_count, as_faces, as_points, gib
+from ._validation import (MAX_DENSE_ELEMENTS, MAX_POINTS, MAX_SPARSE_ENTRIES, as_count, as_faces, as_points,
+                          check_rows, gib, row_count)
 
 __all__ = [
     "KDTree",
@@ -22,6 +23,9 @@ __all__ = [
     "closest_point_on_mesh",
 ]
 
+
+#: The most points a :class:`KDTree` indexes: 2 GiB of float64 coordinates.
+MAX_TREE_POINTS = MAX_POINTS
 
 #: The most (query, point) pairs :meth:`KDTree.query_radius_csr` returns: its int64
 #: indices and float64 distances each stay within 2 GiB.
@@ -72,6 +76,15 @@ def _workers(workers) -> int:
     return min(workers, _core.max_threads())
 
 
+def _check_slots(m: int | None, k: int) -> None:
+    """Refuse k neighbours of m query points beyond the dense-array budget."""
+    if m is not None and m * k > MAX_DENSE_ELEMENTS:
+        raise ValueError(
+            f"points: k = {k} neighbours for {m:,} points would need {m * k:,} output slots "
+            f"({gib(16.0 * m * k)} of distances and indices; limit {MAX_DENSE_ELEMENTS:,}); "
+            "query fewer points at a time or use query_radius_csr")
+
+
 def _radius(value, name: str = "r") -> float:
     try:
         radius = float(value)
@@ -92,7 +105,8 @@ class KDTree:
     Parameters
     ----------
     points : array_like, shape (n, 3)
-        The points to index (mm), n >= 1, finite. Copied.
+        The points to index (mm), 1 <= n <= :data:`MAX_TREE_POINTS` (89,478,485: 2 GiB
+        of coordinates, refused before anything is copied), finite. Copied.
     leaf_size : int, default 16
         Points per leaf; smaller leaves mean deeper trees and fewer distance tests.
 
@@ -110,6 +124,9 @@ class KDTree:
     """
 
     def __init__(self, points, leaf_size: int = 16):
+        # judged before the points are converted: a broadcast view of 10^9 points costs
+        # nothing until it is copied
+        check_rows(points, "points", MAX_TREE_POINTS, "a kd-tree copies its points")
         # A private copy: as_points may return the caller's own array, which must stay
         # writable for them and must not change under the tree.
         points = as_points(points, "points", allow_empty=False).copy()
@@ -169,15 +186,11 @@ class KDTree:
         Missing neighbours (fewer than k points within the bound) have distance ``inf``
         and index ``n``, exactly as :meth:`scipy.spatial.cKDTree.query` reports them.
         """
-        queries = as_points(points, "points")
         k = as_count(k, "k")
+        _check_slots(row_count(points), k)  # before the points are converted
+        queries = as_points(points, "points")
         bound = _radius(distance_upper_bound, "distance_upper_bound")
-        if len(queries) * k > MAX_DENSE_ELEMENTS:
-            raise ValueError(
-                f"k = {k} neighbours for {len(queries)} points would need "
-                f"{len(queries) * k} output slots (limit {MAX_DENSE_ELEMENTS}); "
-                "query fewer points at a time or use query_radius_csr"
-            )
+        _check_slots(len(queries), k)
         distances, indices = self._tree.query(queries, k, bound, _workers(workers))
         indices = _int64(indices)
         # cKDTree's convention for a missing neighbour: index n, one past the last point.
