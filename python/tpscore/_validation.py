@@ -20,6 +20,7 @@ __all__ = [
     "as_array",
     "as_real",
     "as_count",
+    "as_vertex_count",
     "as_path",
     "check_finite",
     "check_real",
@@ -230,6 +231,28 @@ def as_count(value, name: str, *, least: int = 1, most: int = MAX_C_INT) -> int:
         raise ValueError(f"{name} must be >= {least}, got {count}")
     if count > most:
         raise ValueError(f"{name} must be at most {most}, got {count}")
+    return count
+
+
+#: The most vertices a mesh function's ``n_vertices`` may ask for: a C int (the core's
+#: index type), and a mask of that many vertices takes 2 GiB.
+MAX_VERTICES = MAX_C_INT
+
+
+def as_vertex_count(value, name: str = "n_vertices", *, most: int = MAX_VERTICES, what: str = "") -> int:
+    """A vertex count in [0, most]: an integer, or a float with a whole value (as an
+    array's length may arrive); ValueError naming `name` otherwise, before anything
+    that many long is allocated (`what` says what would be)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{name} must be a non-negative integer, got {value!r:.80}")
+    if not isinstance(value, numbers.Integral) and not (math.isfinite(value) and float(value).is_integer()):
+        raise ValueError(f"{name} must be a non-negative integer, got {value!r:.80}")
+    count = int(value)
+    if count < 0:
+        raise ValueError(f"{name} must be a non-negative integer, got {count}")
+    if count > most:
+        raise ValueError(f"{name} = {count:,} is more than the {most:,} vertices tpscore accepts here"
+                         f"{' (' + what + ')' if what else ''}")
     return count
 
 
