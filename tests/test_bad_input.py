@@ -77,6 +77,33 @@ def _cloud(n):
 BILLION = np.broadcast_to(np.zeros(3), (10**9, 3))
 
 
+def _grid_with_outlier(x=1e300) -> np.ndarray:
+    """A real scan's (R, C, 3) grid with one valid point moved to x."""
+    points = _scans()[0].points.copy()
+    r, c = np.argwhere(np.isfinite(points).all(axis=2))[100]
+    points[r, c, 0] = x
+    return points
+
+
+def _bnt_with_outlier(tmp, x=1e300) -> str:
+    """A real scan's .bnt with one valid point moved to x (and its landmarks beside it)."""
+    scan = _scans()[0]
+    bnt = io.BntScan.from_points(scan.points)
+    points = bnt.points.copy()
+    r, c = np.argwhere(bnt.valid)[100]
+    points[r, c, 0] = x
+    io.write_bnt(tmp / "far.bnt", io.BntScan.from_points(points))
+    io.write_lm3(tmp / "far.lm3", scan.landmarks)
+    return str(tmp / "far.bnt")
+
+
+def _full_size_bnt(tmp, name, nrows, ncols) -> str:
+    """A .bnt header with a file as long as it promises: sparse, no disk is used."""
+    path = _write(tmp, name, _bnt_header(nrows, ncols))
+    os.truncate(path, len(_bnt_header(nrows, ncols)) + 8 * 5 * nrows * ncols)
+    return path
+
+
 def _bnt_header(nrows, ncols, len2=None, name=b"x.png", zmin=-1e9):
     len2 = 5 * nrows * ncols if len2 is None else len2
     return struct.pack("<HHdH", nrows, ncols, zmin, len(name)) + name + struct.pack("<I", len2)
@@ -139,6 +166,9 @@ CASES = [
     ("closest-point-far", lambda t: tpscore.MeshSurface(*TRIANGLE).closest_point(FAR), ValueError, "beyond"),
     ("kdtree-far-query", lambda t: tpscore.KDTree(SOURCE).query(FAR), ValueError, "beyond"),
     ("tps-far-centres", lambda t: tpscore.TPS(SOURCE * 1e150, TARGET), ValueError, "millimetres"),
+    ("load-scan-bnt-point-at-1e300", lambda t: load_scan(_bnt_with_outlier(t)), ValueError,
+     ("far.bnt", "beyond +-1e+15 mm")),
+    ("resample-grid-point-at-1e300", lambda t: resample_scan(_grid_with_outlier()), ValueError, "beyond"),
     # sizes that cannot fit in memory: refused before anything is allocated
     ("rbf-dense-fit-too-large", lambda t: tpscore.RBF(RNG.normal(size=(20_000, 3)), np.zeros(20_000)),
      ValueError, "CSRBF"),
@@ -147,8 +177,11 @@ CASES = [
     ("resample-huge-grid", lambda t: resample_scan(_scans()[0].points, shape=(4096, 4096)), ValueError,
      "largest grid"),
     ("bnt-endless-stream", lambda t: io.read_bnt("/dev/zero"), ValueError, "empty"),
-    ("bnt-header-asks-for-too-much", lambda t: io.read_bnt(_write(t, "big.bnt", _bnt_header(4097, 4097))),
-     ValueError, "larger than"),
+    ("bnt-header-asks-for-too-much", lambda t: io.read_bnt(_full_size_bnt(t, "big.bnt", 4097, 4097)),
+     ValueError, ("big.bnt", "4097 x 4097", "larger than the 16,777,216 points")),
+    ("bnt-header-promises-more-than-the-file-has",
+     lambda t: io.read_bnt(_write(t, "small.bnt", _bnt_header(6000, 6000) + bytes(100))), ValueError,
+     ("small.bnt", "truncated", "need 1440000023 bytes, the file has 123")),
     ("csrbf-support-covering-40,000-centres", lambda t: tpscore.CSRBF(_cloud(40_000), np.zeros(40_000), 1e3),
      ValueError, ("support:", "1,600,000,000 nonzeros", "limit of 268,435,456")),
     ("kdtree-radius-covering-40,000-points",
