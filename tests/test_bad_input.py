@@ -590,6 +590,19 @@ def test_pose_names_the_unit_and_the_view():
 
 # --------------------------------------------------------------------------- warned, not refused
 
+def test_a_thread_count_beyond_the_cap_is_warned_and_capped():
+    try:
+        with pytest.warns(RuntimeWarning, match=rf"n = {2**40} is more than max_threads\(\) = "
+                                                rf"{tpscore.max_threads()}"):
+            tpscore.set_num_threads(2**40)
+        assert tpscore.num_threads() == tpscore.max_threads()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            tpscore.set_num_threads(tpscore.max_threads())  # the cap itself is no slip
+    finally:
+        tpscore.set_num_threads(0)
+
+
 def test_shuffled_landmarks_are_warned():
     landmarks = _scans()[2].landmarks[np.random.default_rng(3).permutation(22)]
     with pytest.warns(tpscore.ImplausibleLandmarksWarning, match="shuffled or mislabelled"):
