@@ -169,6 +169,9 @@ CASES = [
     ("load-scan-bnt-point-at-1e300", lambda t: load_scan(_bnt_with_outlier(t)), ValueError,
      ("far.bnt", "beyond +-1e+15 mm")),
     ("resample-grid-point-at-1e300", lambda t: resample_scan(_grid_with_outlier()), ValueError, "beyond"),
+    # empty input: the empty argument is named, not the one that cannot match it
+    ("rbf-no-centres", lambda t: tpscore.RBF(np.empty((0, 3)), np.zeros(5)), ValueError, "centres is empty"),
+    ("tps-no-source", lambda t: tpscore.TPS(np.empty((0, 3)), TARGET), ValueError, "source is empty"),
     # sizes that cannot fit in memory: refused before anything is allocated
     ("rbf-dense-fit-too-large", lambda t: tpscore.RBF(RNG.normal(size=(20_000, 3)), np.zeros(20_000)),
      ValueError, "CSRBF"),

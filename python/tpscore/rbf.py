@@ -89,6 +89,11 @@ def _check_dense_size(n: int) -> None:
             "tpscore.CSRBF (compact support, a sparse system) for large point sets")
 
 
+def _check_not_empty(centres: np.ndarray, name: str) -> None:
+    if len(centres) == 0:
+        raise ValueError(f"{name} is empty: an RBF fit needs at least {MIN_CENTRES} centres")
+
+
 def _check_evaluated(result: np.ndarray, queries: np.ndarray) -> np.ndarray:
     """Refuse a result that overflowed: rather an error than NaN handed back."""
     if not np.isfinite(result).all():
@@ -259,6 +264,7 @@ class RBF:
             epsilon_value = 0.0
         smoothing_value = as_positive(smoothing, "smoothing", allow_zero=True)
         centres_array = as_points(centres, "centres")
+        _check_not_empty(centres_array, "centres")  # before the values are matched to them
         values_array = as_values(values, len(centres_array), "values")
         if values_array.shape[1] == 0:
             raise ValueError("values must have at least one column, got shape "
@@ -501,6 +507,7 @@ class TPS(RBF):
 
     def __init__(self, source, target, smoothing: float = 0.0):
         source_array = as_points(source, "source")
+        _check_not_empty(source_array, "source")
         target_array = as_points(target, "target")
         if len(target_array) != len(source_array):
             raise ValueError(
