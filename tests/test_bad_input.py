@@ -67,6 +67,43 @@ def _transfer(*faces, au="12", magnitude=1.0, **kw):
     return tpscore.transfer(*grids, au, magnitude, **kw)
 
 
+@lru_cache(maxsize=None)
+def _cloud(n):
+    # n points in a 10 mm cube: a support or radius of 1 m covers every pair
+    return np.random.default_rng(7).uniform(0, 10, size=(n, 3))
+
+
+# a billion query points that cost nothing until something copies them
+BILLION = np.broadcast_to(np.zeros(3), (10**9, 3))
+
+
+def _grid_with_outlier(x=1e300) -> np.ndarray:
+    """A real scan's (R, C, 3) grid with one valid point moved to x."""
+    points = _scans()[0].points.copy()
+    r, c = np.argwhere(np.isfinite(points).all(axis=2))[100]
+    points[r, c, 0] = x
+    return points
+
+
+def _bnt_with_outlier(tmp, x=1e300) -> str:
+    """A real scan's .bnt with one valid point moved to x (and its landmarks beside it)."""
+    scan = _scans()[0]
+    bnt = io.BntScan.from_points(scan.points)
+    points = bnt.points.copy()
+    r, c = np.argwhere(bnt.valid)[100]
+    points[r, c, 0] = x
+    io.write_bnt(tmp / "far.bnt", io.BntScan.from_points(points))
+    io.write_lm3(tmp / "far.lm3", scan.landmarks)
+    return str(tmp / "far.bnt")
+
+
+def _full_size_bnt(tmp, name, nrows, ncols) -> str:
+    """A .bnt header with a file as long as it promises: sparse, no disk is used."""
+    path = _write(tmp, name, _bnt_header(nrows, ncols))
+    os.truncate(path, len(_bnt_header(nrows, ncols)) + 8 * 5 * nrows * ncols)
+    return path
+
+
 def _bnt_header(nrows, ncols, len2=None, name=b"x.png", zmin=-1e9):
     len2 = 5 * nrows * ncols if len2 is None else len2
     return struct.pack("<HHdH", nrows, ncols, zmin, len(name)) + name + struct.pack("<I", len2)
@@ -104,7 +141,8 @@ def _turned(grid, rotation=None, unit=1.0):
 
 # --------------------------------------------------------------------------- the battery
 
-# (id, call taking the test's tmp_path, the exception, a word of its message)
+# (id, call taking the test's tmp_path, the exception, a word of its message or a tuple
+# of words it must all contain: for a size, the argument, the size needed and the limit)
 CASES = [
     # complex numbers: refused, never cast with the imaginary part dropped
     ("tps-complex-centres", lambda t: tpscore.TPS(SOURCE + 1j, TARGET), ValueError, "complex"),
@@ -128,6 +166,12 @@ CASES = [
     ("closest-point-far", lambda t: tpscore.MeshSurface(*TRIANGLE).closest_point(FAR), ValueError, "beyond"),
     ("kdtree-far-query", lambda t: tpscore.KDTree(SOURCE).query(FAR), ValueError, "beyond"),
     ("tps-far-centres", lambda t: tpscore.TPS(SOURCE * 1e150, TARGET), ValueError, "millimetres"),
+    ("load-scan-bnt-point-at-1e300", lambda t: load_scan(_bnt_with_outlier(t)), ValueError,
+     ("far.bnt", "beyond +-1e+15 mm")),
+    ("resample-grid-point-at-1e300", lambda t: resample_scan(_grid_with_outlier()), ValueError, "beyond"),
+    # empty input: the empty argument is named, not the one that cannot match it
+    ("rbf-no-centres", lambda t: tpscore.RBF(np.empty((0, 3)), np.zeros(5)), ValueError, "centres is empty"),
+    ("tps-no-source", lambda t: tpscore.TPS(np.empty((0, 3)), TARGET), ValueError, "source is empty"),
     # sizes that cannot fit in memory: refused before anything is allocated
     ("rbf-dense-fit-too-large", lambda t: tpscore.RBF(RNG.normal(size=(20_000, 3)), np.zeros(20_000)),
      ValueError, "CSRBF"),
@@ -136,14 +180,50 @@ CASES = [
     ("resample-huge-grid", lambda t: resample_scan(_scans()[0].points, shape=(4096, 4096)), ValueError,
      "largest grid"),
     ("bnt-endless-stream", lambda t: io.read_bnt("/dev/zero"), ValueError, "empty"),
-    ("bnt-header-asks-for-too-much", lambda t: io.read_bnt(_write(t, "big.bnt", _bnt_header(4097, 4097))),
-     ValueError, "larger than"),
+    ("bnt-header-asks-for-too-much", lambda t: io.read_bnt(_full_size_bnt(t, "big.bnt", 4097, 4097)),
+     ValueError, ("big.bnt", "4097 x 4097", "larger than the 16,777,216 points")),
+    ("bnt-header-promises-more-than-the-file-has",
+     lambda t: io.read_bnt(_write(t, "small.bnt", _bnt_header(6000, 6000) + bytes(100))), ValueError,
+     ("small.bnt", "truncated", "need 1440000023 bytes, the file has 123")),
+    ("csrbf-support-covering-40,000-centres", lambda t: tpscore.CSRBF(_cloud(40_000), np.zeros(40_000), 1e3),
+     ValueError, ("support:", "1,600,000,000 nonzeros", "limit of 268,435,456")),
+    ("kdtree-radius-covering-40,000-points",
+     lambda t: tpscore.KDTree(_cloud(40_000)).query_radius_csr(_cloud(40_000), 1e3), ValueError,
+     ("r:", "1,600,000,000 neighbours", "limit of 268,435,456 pairs")),
+    ("kdtree-radius-lists-covering-40,000-points",
+     lambda t: tpscore.KDTree(_cloud(40_000)).query_radius(_cloud(40_000), 1e3), ValueError,
+     ("r:", "1,600,000,000 neighbours", "limit of 268,435,456 pairs")),
+    ("kdtree-10**9-points-as-a-broadcast-view", lambda t: tpscore.KDTree(BILLION), ValueError,
+     ("points has 1,000,000,000 rows", "22.4 GiB", "at most 89,478,485")),
+    ("kdtree-10**9-queries", lambda t: tpscore.KDTree(SOURCE).query(BILLION, k=3), ValueError,
+     ("points:", "3,000,000,000 output slots", "44.7 GiB", "limit 268,435,456")),
+    ("tps-10**9-queries", lambda t: _tps()(BILLION), ValueError, ("points:", "22.4 GiB", "268,435,456 values")),
+    ("tps-10**9-displacements", lambda t: _tps().displacement(BILLION), ValueError,
+     ("points:", "22.4 GiB", "268,435,456 values")),
+    ("rbf-10**9-queries", lambda t: tpscore.RBF(SOURCE, TARGET[:, 0])(BILLION), ValueError,
+     ("points:", "1,000,000,000 x 1", "268,435,456 values")),
+    ("csrbf-10**9-queries", lambda t: tpscore.CSRBF(SOURCE, TARGET, 50.0)(BILLION), ValueError,
+     ("points:", "22.4 GiB", "268,435,456 values")),
     # counts the core takes as a C int: refused in Python, not a TypeError from the binding
     ("kdtree-leaf-size-2**31", lambda t: tpscore.KDTree(SOURCE, leaf_size=2**31), ValueError, "leaf_size"),
     ("kdtree-k-2**31", lambda t: tpscore.KDTree(SOURCE).query(SOURCE, k=2**31), ValueError, "k must"),
     ("kdtree-k-2**31-no-queries", lambda t: tpscore.KDTree(SOURCE).query(np.empty((0, 3)), k=2**31), ValueError,
      "k must"),
     ("kdtree-k-float", lambda t: tpscore.KDTree(SOURCE).query(SOURCE, k=2.5), ValueError, "k must"),
+    ("boundary-n-vertices-10**12", lambda t: tpscore.mesh.boundary_vertices(TRIANGLE[1], n_vertices=10**12),
+     ValueError, ("n_vertices = 1,000,000,000,000", "more than the 2,147,483,647")),
+    ("boundary-n-vertices-2**64", lambda t: tpscore.mesh.boundary_vertices(TRIANGLE[1], n_vertices=2**64),
+     ValueError, ("n_vertices = 18,446,744,073,709,551,616", "2,147,483,647")),
+    ("boundary-index-10**12-without-n-vertices", lambda t: tpscore.mesh.boundary_vertices([[0, 1, 10**12]]),
+     ValueError, ("faces refers to vertex 1,000,000,000,000", "more than the 2,147,483,647")),
+    ("boundary-n-vertices-text", lambda t: tpscore.mesh.boundary_vertices(TRIANGLE[1], n_vertices="a"),
+     ValueError, "n_vertices must be a non-negative integer"),
+    ("boundary-n-vertices-2.5", lambda t: tpscore.mesh.boundary_vertices(TRIANGLE[1], n_vertices=2.5),
+     ValueError, "n_vertices must be a non-negative integer"),
+    ("adjacency-n-vertices-10**12", lambda t: tpscore.geometry.vertex_adjacency(10**12, TRIANGLE[1]),
+     ValueError, ("n_vertices = 1,000,000,000,000", "more than the 268,435,456")),
+    ("adjacency-n-vertices-text", lambda t: tpscore.geometry.vertex_adjacency("a", TRIANGLE[1]), ValueError,
+     "n_vertices must be a non-negative integer"),
     ("threads-text", lambda t: tpscore.set_num_threads("a"), ValueError, "integer"),
     ("threads-none", lambda t: tpscore.set_num_threads(None), ValueError, "integer"),
     ("threads-float", lambda t: tpscore.set_num_threads(2.5), ValueError, "integer"),
@@ -256,9 +336,12 @@ CASES = [
 
 @pytest.mark.parametrize("call, error, word", [pytest.param(*case[1:], id=case[0]) for case in CASES])
 def test_bad_input_is_refused_with_a_message_that_says_why(tmp_path, call, error, word):
-    with pytest.raises(error, match=word.replace("*", r"\*")) as raised:
+    words = (word,) if isinstance(word, str) else word
+    with pytest.raises(error, match=words[0].replace("*", r"\*")) as raised:
         call(tmp_path)
     assert type(raised.value) is error or issubclass(type(raised.value), error)
+    for other in words[1:]:
+        assert other in str(raised.value), f"{other!r} is not in the message {str(raised.value)!r}"
 
 
 def test_every_file_error_names_the_file(tmp_path):
@@ -408,6 +491,23 @@ CLI_CASES = [
     ("pipeline-cli-out-in-a-missing-folder", lambda f, t: _transfer_args(f, "--out", str(t / "no" / "r.npz")),
      "does not exist"),
     ("pipeline-cli-scan-is-a-folder", lambda f, t: _transfer_args([f[0], f[1], str(t)]), "is a folder"),
+    # integer options name themselves (a negative ICT subject was NumPy's "expected
+    # non-negative integer", which said nothing of the option)
+    ("pipeline-cli-elastic-negative-source-subject",
+     lambda f, t: ["elastic", "--face-model", str(t / "m.npz"), "--source-subject", "-1", "--out", str(t / "o")],
+     "argument --source-subject: must be an integer >= 0, got '-1'"),
+    ("pipeline-cli-elastic-text-target-subject",
+     lambda f, t: ["elastic", "--face-model", str(t / "m.npz"), "--target-subject", "one", "--out", str(t / "o")],
+     "argument --target-subject: must be an integer >= 0"),
+    ("pipeline-cli-adapt-zero-levels",
+     lambda f, t: ["adapt", f[0], f[1], "--template-landmarks", "x.lm3", "--out", str(t / "o.obj"), "--levels", "0"],
+     "argument --levels: must be an integer >= 1, got '0'"),
+    ("pipeline-cli-batch-zero-workers", lambda f, t: ["batch", str(t), "--out", str(t / "o"), "--workers", "0"],
+     "argument --workers: must be an integer >= 1"),
+    ("pipeline-cli-batch-negative-retries", lambda f, t: ["batch", str(t), "--out", str(t / "o"), "--retries", "-1"],
+     "argument --retries: must be an integer >= 0"),
+    ("pipeline-cli-batch-zero-cache", lambda f, t: ["batch", str(t), "--out", str(t / "o"), "--cache-scans", "0"],
+     "argument --cache-scans: must be an integer >= 1"),
     ("pipeline-cli-elastic-corrupt-npz",
      lambda f, t: ["elastic", "--face-model", _write(t, "m.npz", b"PK\x03\x04garbage"), "--out", str(t / "o")],
      "corrupt"),
@@ -509,6 +609,19 @@ def test_pose_names_the_unit_and_the_view():
 
 
 # --------------------------------------------------------------------------- warned, not refused
+
+def test_a_thread_count_beyond_the_cap_is_warned_and_capped():
+    try:
+        with pytest.warns(RuntimeWarning, match=rf"n = {2**40} is more than max_threads\(\) = "
+                                                rf"{tpscore.max_threads()}"):
+            tpscore.set_num_threads(2**40)
+        assert tpscore.num_threads() == tpscore.max_threads()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            tpscore.set_num_threads(tpscore.max_threads())  # the cap itself is no slip
+    finally:
+        tpscore.set_num_threads(0)
+
 
 def test_shuffled_landmarks_are_warned():
     landmarks = _scans()[2].landmarks[np.random.default_rng(3).permutation(22)]

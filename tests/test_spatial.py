@@ -143,6 +143,12 @@ def test_radius_matches_brute_force_and_ckdtree(kind, n, r, sort, seed):
     want = ref.radius_neighbors(points, queries, r)
     scipy_lists = cKDTree(points).query_ball_point(queries, r)
     assert len(got_i) == len(queries)
+    # the count is what the query finds; with whole nodes of up to 8 points counted, an
+    # upper bound of it (what the size checks of radius queries and CSRBF fits use)
+    counts = tree.count_radius(queries, r)
+    assert counts.dtype == np.int64 and counts.tolist() == [len(w[0]) for w in want]
+    bound = tree._tree.count_radius(queries, r, 0, 8)
+    assert np.all(bound >= counts) and np.all(bound <= n)
     for q, indices, distances, (want_i, want_d), scipy_i in zip(
         queries, got_i, got_d, want, scipy_lists
     ):
@@ -154,6 +160,16 @@ def test_radius_matches_brute_force_and_ckdtree(kind, n, r, sort, seed):
         if sort:
             assert np.array_equal(indices, want_i)
             np.testing.assert_allclose(distances, want_d, rtol=DIST_RTOL, atol=0)
+
+
+def test_count_radius_of_no_queries_and_bad_radii():
+    tree = KDTree(np.eye(3))
+    assert tree.count_radius(np.empty((0, 3)), 1.0).shape == (0,)
+    assert tree.count_radius([[0.0, 0, 0]], 1.0, workers=1).tolist() == [3]
+    with pytest.raises(ValueError, match="r must be finite"):
+        tree.count_radius([[0.0, 0, 0]], np.inf)
+    with pytest.raises(ValueError, match="r must be >= 0"):
+        tree.count_radius([[0.0, 0, 0]], -1.0)
 
 
 def test_radius_zero_finds_exact_duplicates_only():

@@ -92,7 +92,22 @@ void bind_spatial(nb::module_& m) {
                                       to_numpy(std::move(distances)));
             },
             "queries"_a, "radius"_a, "sort"_a, "workers"_a,
-            "(offsets (m + 1,), indices, distances) in CSR form.");
+            "(offsets (m + 1,), indices, distances) in CSR form.")
+        .def(
+            "count_radius",
+            [](const KDTree& tree, const InPoints& queries, double radius, int workers,
+               std::int64_t whole_below) {
+                const std::size_t m = queries.shape(0);
+                std::unique_ptr<std::int64_t[]> counts(new std::int64_t[m]);
+                {
+                    nb::gil_scoped_release release;
+                    tree.count_radius(as_eigen(queries), radius, counts.get(), workers, whole_below);
+                }
+                return to_numpy(std::move(counts), {m});
+            },
+            "queries"_a, "radius"_a, "workers"_a, "whole_below"_a = 0,
+            "(m,) the number of points within radius of each query (what query_radius returns); "
+            "with whole_below > 0 an upper bound (nodes of at most that many points count whole).");
 
     using tpscore::MeshSurface;
     nb::class_<MeshSurface>(m, "MeshSurface",

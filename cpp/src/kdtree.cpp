@@ -255,8 +255,9 @@ void KDTree::query(const PointsRef& queries, int k, double max_distance, double*
     });
 }
 
-void KDTree::radius_search(const double* query, double radius,
-                           std::vector<std::pair<std::int64_t, double>>& out) const {
+template <class Whole, class Each>
+void KDTree::visit_radius(const double* query, double radius, std::int64_t whole_below, Whole&& whole,
+                          Each&& each) const {
     if (nodes_.empty()) return;
     const double r2 = radius * radius;
     // An explicit stack: the tree depth is about log2(n / leaf_size), far below 64 for
@@ -268,23 +269,54 @@ void KDTree::radius_search(const double* query, double radius,
     while (top > 0) {
         const Node& node = nodes_[static_cast<std::size_t>(stack[--top])];
         if (box_distance(node, query) > r2) continue;
-        if (box_farthest(node, query) <= r2) {
-            // The whole box lies inside the ball: no point needs a test, but the
-            // distances are still reported.
-            for (std::int64_t i = node.begin; i < node.end; ++i)
-                out.emplace_back(order_[static_cast<std::size_t>(i)], squared_distance(query, p + 3 * i));
+        if (node.end - node.begin <= whole_below || box_farthest(node, query) <= r2) {
+            // The whole box lies inside the ball (or is small enough to be counted
+            // whole): no point needs a test.
+            whole(node);
             continue;
         }
         if (node.left < 0) {
             for (std::int64_t i = node.begin; i < node.end; ++i) {
                 const double d2 = squared_distance(query, p + 3 * i);
-                if (d2 <= r2) out.emplace_back(order_[static_cast<std::size_t>(i)], d2);
+                if (d2 <= r2) each(i, d2);
             }
             continue;
         }
         stack[top++] = node.right;
         stack[top++] = node.left;
     }
+}
+
+void KDTree::radius_search(const double* query, double radius,
+                           std::vector<std::pair<std::int64_t, double>>& out) const {
+    const double* p = points_.data();
+    visit_radius(
+        query, radius, 0,
+        [&](const Node& node) {
+            // the distances of a box inside the ball are still reported
+            for (std::int64_t i = node.begin; i < node.end; ++i)
+                out.emplace_back(order_[static_cast<std::size_t>(i)], squared_distance(query, p + 3 * i));
+        },
+        [&](std::int64_t i, double d2) { out.emplace_back(order_[static_cast<std::size_t>(i)], d2); });
+}
+
+std::int64_t KDTree::radius_count(const double* query, double radius, std::int64_t whole_below) const {
+    std::int64_t count = 0;
+    visit_radius(
+        query, radius, whole_below, [&](const Node& node) { count += node.end - node.begin; },
+        [&](std::int64_t, double) { ++count; });
+    return count;
+}
+
+void KDTree::count_radius(const PointsRef& queries, double radius, std::int64_t* counts,
+                          int workers, std::int64_t whole_below) const {
+    const auto m = static_cast<std::size_t>(queries.rows());
+    parallel_rows(m, kQueryChunk, workers, [&](std::size_t begin, std::size_t end) {
+        for (std::size_t r = begin; r < end; ++r) {
+            const double q[3] = {queries(r, 0), queries(r, 1), queries(r, 2)};
+            counts[r] = radius_count(q, radius, whole_below);
+        }
+    });
 }
 
 void KDTree::query_radius(const PointsRef& queries, double radius, bool sort,

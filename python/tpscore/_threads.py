@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import numbers
 import threading
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 
@@ -42,19 +43,29 @@ def set_num_threads(n: int) -> None:
     ----------
     n : int
         The thread count; 0 or less restores the default (see :func:`num_threads`),
-        and values above :func:`max_threads` are capped to it. Results do not depend
-        on the thread count.
+        and values above :func:`max_threads` are capped to it, with a
+        ``RuntimeWarning`` that says so (a count of 2**40 is a slip, not a request).
+        Results do not depend on the thread count.
 
     Raises
     ------
     ValueError
         If n is not an integer (a string, None, a float such as 2.5, a bool).
+
+    Warns
+    -----
+    RuntimeWarning
+        If n is above :func:`max_threads`: the kernels then use max_threads().
     """
     if isinstance(n, bool) or not isinstance(n, numbers.Integral):
         raise ValueError(f"n (the thread count) must be an integer, got {n!r}")
     count = int(n)
+    cap = _core.max_threads()
+    if count > cap:
+        warnings.warn(f"set_num_threads: n = {count} is more than max_threads() = {cap}; the kernels "
+                      f"use {cap} threads", RuntimeWarning, stacklevel=2)
     # The core takes a C int; anything beyond the cap means the cap.
-    _core.set_num_threads(max(0, min(count, _core.max_threads())))
+    _core.set_num_threads(max(0, min(count, cap)))
 
 
 def side_by_side(first, second):

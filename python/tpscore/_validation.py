@@ -20,15 +20,30 @@ __all__ = [
     "as_array",
     "as_real",
     "as_count",
+    "as_vertex_count",
     "as_path",
     "check_finite",
     "check_real",
+    "check_rows",
+    "row_count",
+    "check_result_size",
+    "gib",
     "MAX_DENSE_ELEMENTS",
+    "MAX_SPARSE_ENTRIES",
+    "MAX_POINTS",
     "MAX_COORDINATE",
 ]
 
 # A dense temporary larger than this (in float64 elements, 2 GiB) is refused or chunked.
 MAX_DENSE_ELEMENTS = 2**28
+
+#: The most entries of a sparse result (the pairs a radius query returns, the nonzeros
+#: of a CSRBF matrix): the same 2 GiB budget, for each of its float64 and int64 arrays.
+MAX_SPARSE_ENTRIES = MAX_DENSE_ELEMENTS
+
+#: The most rows of an (n, 3) point array a kernel copies: 2 GiB of float64 coordinates
+#: (89,478,485 points).
+MAX_POINTS = MAX_DENSE_ELEMENTS // 3
 
 #: Largest coordinate magnitude (mm) a kernel accepts. Millimetres that far out are
 #: quantised to 0.125 mm by float64 itself, so no face geometry survives there; and the
@@ -78,6 +93,47 @@ def as_points(points, name: str = "points", *, dim: int = 3, allow_empty: bool =
                 f"{name} has coordinates beyond +-{MAX_COORDINATE:.0e} mm (first at row {row}: "
                 f"{array[row].tolist()}); tpscore works in millimetres")
     return np.ascontiguousarray(array)
+
+
+def gib(n_bytes: float) -> str:
+    """A size in bytes as GiB, for messages."""
+    return f"{n_bytes / 2**30:.1f} GiB"
+
+
+def row_count(values) -> int | None:
+    """len() of an array-like's first axis without converting it (a broadcast view of
+    10^9 rows is free until it is copied), or None when it has no such axis."""
+    shape = getattr(values, "shape", None)
+    if shape is not None:
+        try:
+            return int(shape[0]) if len(shape) >= 1 else None
+        except (TypeError, ValueError, IndexError):  # not an array's shape: as_points says why
+            return None
+    # a list is measured without converting it (as_points converts it once, later)
+    return len(values) if isinstance(values, (list, tuple)) else None
+
+
+def check_rows(points, name: str, most: int, what: str) -> None:
+    """Refuse, before (n, 3) `points` are converted or copied, more than `most` rows: a
+    ValueError naming `name`, the rows given, their size and the limit (`what` says
+    why the limit is there)."""
+    rows = row_count(points)
+    if rows is not None and rows > most:
+        raise ValueError(f"{name} has {rows:,} rows ({gib(24.0 * rows)} of float64 coordinates); at most "
+                         f"{most:,} ({gib(24.0 * most)}) are accepted: {what}")
+
+
+def check_result_size(points, columns: int, name: str = "points", *, hint: str = "") -> None:
+    """Refuse, before `points` is converted, a query whose (m, columns) float64 result
+    would pass the dense-array budget (:data:`MAX_DENSE_ELEMENTS`, 2 GiB)."""
+    rows = row_count(points)
+    if rows is None or columns <= 0 or rows * columns <= MAX_DENSE_ELEMENTS:
+        return
+    most = max(1, MAX_DENSE_ELEMENTS // columns)
+    raise ValueError(
+        f"{name}: {rows:,} query points would give a {rows:,} x {columns} float64 result "
+        f"({gib(8.0 * rows * columns)}), more than the limit of {MAX_DENSE_ELEMENTS:,} values "
+        f"({gib(8.0 * MAX_DENSE_ELEMENTS)}); pass at most {most:,} points at a time{hint}")
 
 
 def as_array(values, name: str) -> np.ndarray:
@@ -175,6 +231,28 @@ def as_count(value, name: str, *, least: int = 1, most: int = MAX_C_INT) -> int:
         raise ValueError(f"{name} must be >= {least}, got {count}")
     if count > most:
         raise ValueError(f"{name} must be at most {most}, got {count}")
+    return count
+
+
+#: The most vertices a mesh function's ``n_vertices`` may ask for: a C int (the core's
+#: index type), and a mask of that many vertices takes 2 GiB.
+MAX_VERTICES = MAX_C_INT
+
+
+def as_vertex_count(value, name: str = "n_vertices", *, most: int = MAX_VERTICES, what: str = "") -> int:
+    """A vertex count in [0, most]: an integer, or a float with a whole value (as an
+    array's length may arrive); ValueError naming `name` otherwise, before anything
+    that many long is allocated (`what` says what would be)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{name} must be a non-negative integer, got {value!r:.80}")
+    if not isinstance(value, numbers.Integral) and not (math.isfinite(value) and float(value).is_integer()):
+        raise ValueError(f"{name} must be a non-negative integer, got {value!r:.80}")
+    count = int(value)
+    if count < 0:
+        raise ValueError(f"{name} must be a non-negative integer, got {count}")
+    if count > most:
+        raise ValueError(f"{name} = {count:,} is more than the {most:,} vertices tpscore accepts here"
+                         f"{' (' + what + ')' if what else ''}")
     return count
 
 

@@ -21,9 +21,15 @@ import numbers
 import numpy as np
 
 from . import _core
-from ._validation import as_array, as_points, as_positive, as_values
+from .spatial import _pairs_beyond
+from ._validation import MAX_SPARSE_ENTRIES, as_array, as_points, as_positive, as_values, check_result_size, gib
 
 __all__ = ["CSRBF", "ConvergenceError", "wendland"]
+
+#: The most stored entries of a CSRBF matrix (pairs of centres within the support, the
+#: diagonal included): 2**28, whose float64 values alone take 2 GiB, the budget of a
+#: dense fit's matrix. Counted before the matrix is assembled.
+MAX_CSRBF_NONZEROS = MAX_SPARSE_ENTRIES
 
 _PRECONDITIONERS = {"diagonal": 0, "ilu": 1}
 
@@ -78,7 +84,8 @@ class CSRBF:
         Values at the centres (e.g. displacements, mm).
     support : float
         The support radius sigma, mm, > 0: each centre influences points closer
-        than this. Choose it so that each centre has some tens of neighbours.
+        than this. Choose it so that each centre has some tens of neighbours; the
+        matrix may hold at most :data:`MAX_CSRBF_NONZEROS` pairs of centres within it.
     normals : array_like, shape (n, 3), optional
         Surface normals at the centres for the quadric's tangent frames (need not be
         unit length, must be nonzero). Estimated by weighted PCA when omitted. Only
@@ -103,7 +110,9 @@ class CSRBF:
     ------
     ValueError
         Invalid arguments (the message names the argument), including duplicate
-        centres (naming the two rows).
+        centres (naming the two rows) and a support that puts more than
+        :data:`MAX_CSRBF_NONZEROS` pairs of centres in the matrix (counted before it is
+        assembled).
     ConvergenceError
         A value column did not reach the tolerance within ``max_iterations`` (the
         message gives the residuals). A field that missed its tolerance is never
@@ -165,6 +174,7 @@ class CSRBF:
         self._preconditioner = preconditioner
         self._tolerance = tolerance
         self._max_iterations = int(max_iterations)
+        _check_nonzeros(centres, support)
         self._fit = _core.CSRBF(centres, values, normals_array, support, smoothing, bool(quadric),
                                 _PRECONDITIONERS[preconditioner], tolerance, int(max_iterations))
         self._coefficients = self._fit.coefficients
@@ -204,7 +214,14 @@ class CSRBF:
         -------
         ndarray, shape (m, k), or (m,) if the values were 1-D
             The field; 0 where no centre is within the support.
+
+        Raises
+        ------
+        ValueError
+            Bad points, or an (m, k) result above 2 GiB (refused before the points are
+            converted: evaluate in chunks of rows).
         """
+        check_result_size(points, self._coefficients.shape[1])
         points = as_points(points, "points")
         result = self._fit.evaluate(points)
         return result[:, 0] if self._one_dimensional else result
@@ -249,6 +266,23 @@ class CSRBF:
     def __repr__(self) -> str:
         return (f"CSRBF(n={len(self._coefficients)}, k={self._coefficients.shape[1]}, "
                 f"support={self._support:g}, quadric={self._quadric}, nnz={self.nnz})")
+
+
+def _check_nonzeros(centres: np.ndarray, support: float) -> None:
+    """Refuse, before the matrix is assembled, a support that gives it more than
+    MAX_CSRBF_NONZEROS entries: the pairs within the support are counted on a kd-tree
+    (only when n^2 could pass the limit: up to 16,384 centres it cannot)."""
+    n = len(centres)
+    if n * n <= MAX_CSRBF_NONZEROS:
+        return
+    nonzeros = _pairs_beyond(_core.KDTree(centres, 16), centres, support, 0, MAX_CSRBF_NONZEROS)
+    if nonzeros is not None:
+        raise ValueError(
+            f"support: with support = {support:g} mm the {n:,} centres have {nonzeros:,} pairs within "
+            f"the support (about {nonzeros // n:,} neighbours each), so the CSRBF matrix would have "
+            f"{nonzeros:,} nonzeros ({gib(8.0 * nonzeros)} of values alone), more than the limit of "
+            f"{MAX_CSRBF_NONZEROS:,} ({gib(8.0 * MAX_CSRBF_NONZEROS)}); use a smaller support "
+            "(some tens of neighbours per centre)")
 
 
 def _refit(centres, values, support, normals, quadric, smoothing, preconditioner, tolerance, max_iterations):

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ._validation import as_array, as_points
+from ._validation import MAX_DENSE_ELEMENTS, as_array, as_points, as_vertex_count
 
 __all__ = ["mesh_edges", "spread_vertices", "vertex_adjacency", "robust_scale", "tukey_weights", "off_surface", "FrameTransform",
            "paired_points", "similarity_transform"]
@@ -31,8 +31,17 @@ def mesh_edges(faces) -> np.ndarray:
 
 
 def vertex_adjacency(n_vertices: int, faces) -> sp.csr_matrix:
-    """(n, n) symmetric 0/1 CSR matrix: 1 where two vertices share an edge."""
+    """(n, n) symmetric 0/1 CSR matrix: 1 where two vertices share an edge.
+
+    ``n_vertices`` is at most 2**28 (the matrix's row pointers alone take 8 bytes a
+    vertex: 2 GiB), judged before anything is allocated; the faces' indices lie in
+    [0, n_vertices)."""
+    n_vertices = as_vertex_count(n_vertices, "n_vertices", most=MAX_DENSE_ELEMENTS,
+                                 what="the adjacency matrix's row pointers alone would pass 2 GiB")
     edges = mesh_edges(faces)
+    if edges.size and (edges.min() < 0 or edges.max() >= n_vertices):
+        raise ValueError(f"faces refers to vertex indices outside [0, {n_vertices}): min {edges.min()}, "
+                         f"max {edges.max()}")
     ones = np.ones(2 * len(edges))
     rows = np.concatenate([edges[:, 0], edges[:, 1]])
     cols = np.concatenate([edges[:, 1], edges[:, 0]])

@@ -26,7 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import _core
-from ._validation import as_array, as_faces, as_points
+from ._validation import MAX_VERTICES, as_array, as_faces, as_points, as_vertex_count
 from .spatial import MeshSurface
 
 __all__ = [
@@ -170,7 +170,8 @@ def boundary_vertices(faces, n_vertices: int | None = None) -> np.ndarray:
     faces : array_like of int, shape (m, 3)
         Triangles as vertex indices.
     n_vertices : int, optional
-        Length of the mask; by default one more than the largest index in faces.
+        Length of the mask, at most 2**31 - 1 (a mask of 2 GiB); by default one more
+        than the largest index in faces.
 
     Returns
     -------
@@ -182,10 +183,15 @@ def boundary_vertices(faces, n_vertices: int | None = None) -> np.ndarray:
         if faces_array.ndim != 2 or faces_array.shape[1] != 3:
             raise ValueError(f"faces must have shape (m, 3), got {faces_array.shape}")
         n_vertices = int(faces_array.max()) + 1 if faces_array.size else 0
-    elif isinstance(n_vertices, bool) or int(n_vertices) != n_vertices or n_vertices < 0:
-        raise ValueError(f"n_vertices must be a non-negative integer, got {n_vertices!r}")
-    faces_array = as_faces(faces_array, int(n_vertices), "faces")
-    return _core.boundary_vertices(int(n_vertices), faces_array)
+        if n_vertices > MAX_VERTICES:
+            raise ValueError(f"faces refers to vertex {n_vertices - 1:,}: a mask of {n_vertices:,} vertices is "
+                             f"more than the {MAX_VERTICES:,} tpscore accepts (a C int; 2 GiB)")
+    else:
+        # judged before the mask is allocated (the core takes a C int64 and would try)
+        n_vertices = as_vertex_count(n_vertices, "n_vertices", most=MAX_VERTICES,
+                                     what="a C int; the mask alone would pass 2 GiB")
+    faces_array = as_faces(faces_array, n_vertices, "faces")
+    return _core.boundary_vertices(n_vertices, faces_array)
 
 
 class MeanCurvature(NamedTuple):

@@ -44,7 +44,7 @@ import math
 import numpy as np
 
 from . import _core
-from ._validation import MAX_DENSE_ELEMENTS, as_points, as_positive, as_values
+from ._validation import MAX_DENSE_ELEMENTS, as_points, as_positive, as_values, check_result_size
 
 __all__ = ["RBF", "TPS", "RBF_KERNELS"]
 
@@ -87,6 +87,11 @@ def _check_dense_size(n: int) -> None:
             f"({_gib(8.0 * n * n)}, and up to three times that when the system is not "
             f"definite); tpscore fits at most {MAX_DENSE_CENTRES} centres densely. Use "
             "tpscore.CSRBF (compact support, a sparse system) for large point sets")
+
+
+def _check_not_empty(centres: np.ndarray, name: str) -> None:
+    if len(centres) == 0:
+        raise ValueError(f"{name} is empty: an RBF fit needs at least {MIN_CENTRES} centres")
 
 
 def _check_evaluated(result: np.ndarray, queries: np.ndarray) -> np.ndarray:
@@ -259,6 +264,7 @@ class RBF:
             epsilon_value = 0.0
         smoothing_value = as_positive(smoothing, "smoothing", allow_zero=True)
         centres_array = as_points(centres, "centres")
+        _check_not_empty(centres_array, "centres")  # before the values are matched to them
         values_array = as_values(values, len(centres_array), "values")
         if values_array.shape[1] == 0:
             raise ValueError("values must have at least one column, got shape "
@@ -323,7 +329,15 @@ class RBF:
         -------
         numpy.ndarray, shape (m, k)
             f at each point (k columns even when the values were 1-D).
+
+        Raises
+        ------
+        ValueError
+            Bad points, a point where f overflows, or m * k above the dense-array
+            budget (``_validation.MAX_DENSE_ELEMENTS``, 2 GiB of result), refused
+            before the points are converted; evaluate in chunks of rows instead.
         """
+        check_result_size(points, self._n_values)  # before the points are converted
         queries = as_points(points, "points")
         result = np.empty((len(queries), self._n_values))
         # the kernel checks each row for overflow as it writes it
@@ -345,11 +359,17 @@ class RBF:
         -------
         numpy.ndarray, shape (m, 3)
             f(x) - x in mm.
+
+        Raises
+        ------
+        ValueError
+            As :meth:`__call__` (a result of at most 2 GiB: 89,478,485 points).
         """
         if self._n_values != 3:
             raise ValueError(
                 f"displacement needs values with 3 columns (a map of 3D points), "
                 f"this RBF has {self._n_values}")
+        check_result_size(points, 3)
         queries = as_points(points, "points")
         result = np.empty((len(queries), 3))
         _check_overflow(self._model.displacement_into(queries, result), queries)
@@ -487,6 +507,7 @@ class TPS(RBF):
 
     def __init__(self, source, target, smoothing: float = 0.0):
         source_array = as_points(source, "source")
+        _check_not_empty(source_array, "source")
         target_array = as_points(target, "target")
         if len(target_array) != len(source_array):
             raise ValueError(

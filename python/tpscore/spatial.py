@@ -12,7 +12,8 @@ from typing import NamedTuple
 import numpy as np
 
 from . import _core
-from ._validation import MAX_DENSE_ELEMENTS, as_count, as_faces, as_points
+from ._validation import (MAX_DENSE_ELEMENTS, MAX_POINTS, MAX_SPARSE_ENTRIES, as_count, as_faces, as_points,
+                          check_rows, gib, row_count)
 
 __all__ = [
     "KDTree",
@@ -21,6 +22,33 @@ __all__ = [
     "RayHits",
     "closest_point_on_mesh",
 ]
+
+
+#: The most points a :class:`KDTree` indexes: 2 GiB of float64 coordinates.
+MAX_TREE_POINTS = MAX_POINTS
+
+#: The most (query, point) pairs :meth:`KDTree.query_radius_csr` returns: its int64
+#: indices and float64 distances each stay within 2 GiB.
+MAX_RADIUS_PAIRS = MAX_SPARSE_ENTRIES
+
+
+# In the first, coarse count of a radius query's size, a node of the tree of at most
+# this many points that the ball touches counts whole: an upper bound found in a few
+# percent of the query's time (a ball of 50 neighbours touches some nodes of 256).
+_COARSE_NODE_POINTS = 256
+
+
+def _pairs_beyond(tree, queries: np.ndarray, radius: float, workers: int, limit: int) -> int | None:
+    """The number of (query, point) pairs within `radius` on the core's kd-tree `tree`
+    when it passes `limit`, else None, counted before anything is collected: nothing
+    when m * n cannot pass it, then a cheap upper bound, the exact count only when the
+    bound passes."""
+    if len(queries) * tree.size <= limit:
+        return None
+    if int(tree.count_radius(queries, radius, workers, _COARSE_NODE_POINTS).sum()) <= limit:
+        return None
+    pairs = int(tree.count_radius(queries, radius, workers).sum())
+    return pairs if pairs > limit else None
 
 
 def _int64(array: np.ndarray) -> np.ndarray:
@@ -48,6 +76,15 @@ def _workers(workers) -> int:
     return min(workers, _core.max_threads())
 
 
+def _check_slots(m: int | None, k: int) -> None:
+    """Refuse k neighbours of m query points beyond the dense-array budget."""
+    if m is not None and m * k > MAX_DENSE_ELEMENTS:
+        raise ValueError(
+            f"points: k = {k} neighbours for {m:,} points would need {m * k:,} output slots "
+            f"({gib(16.0 * m * k)} of distances and indices; limit {MAX_DENSE_ELEMENTS:,}); "
+            "query fewer points at a time or use query_radius_csr")
+
+
 def _radius(value, name: str = "r") -> float:
     try:
         radius = float(value)
@@ -68,7 +105,8 @@ class KDTree:
     Parameters
     ----------
     points : array_like, shape (n, 3)
-        The points to index (mm), n >= 1, finite. Copied.
+        The points to index (mm), 1 <= n <= :data:`MAX_TREE_POINTS` (89,478,485: 2 GiB
+        of coordinates, refused before anything is copied), finite. Copied.
     leaf_size : int, default 16
         Points per leaf; smaller leaves mean deeper trees and fewer distance tests.
 
@@ -86,6 +124,9 @@ class KDTree:
     """
 
     def __init__(self, points, leaf_size: int = 16):
+        # judged before the points are converted: a broadcast view of 10^9 points costs
+        # nothing until it is copied
+        check_rows(points, "points", MAX_TREE_POINTS, "a kd-tree copies its points")
         # A private copy: as_points may return the caller's own array, which must stay
         # writable for them and must not change under the tree.
         points = as_points(points, "points", allow_empty=False).copy()
@@ -145,15 +186,11 @@ class KDTree:
         Missing neighbours (fewer than k points within the bound) have distance ``inf``
         and index ``n``, exactly as :meth:`scipy.spatial.cKDTree.query` reports them.
         """
-        queries = as_points(points, "points")
         k = as_count(k, "k")
+        _check_slots(row_count(points), k)  # before the points are converted
+        queries = as_points(points, "points")
         bound = _radius(distance_upper_bound, "distance_upper_bound")
-        if len(queries) * k > MAX_DENSE_ELEMENTS:
-            raise ValueError(
-                f"k = {k} neighbours for {len(queries)} points would need "
-                f"{len(queries) * k} output slots (limit {MAX_DENSE_ELEMENTS}); "
-                "query fewer points at a time or use query_radius_csr"
-            )
+        _check_slots(len(queries), k)
         distances, indices = self._tree.query(queries, k, bound, _workers(workers))
         indices = _int64(indices)
         # cKDTree's convention for a missing neighbour: index n, one past the last point.
@@ -184,14 +221,56 @@ class KDTree:
         indices : ndarray of int64, shape (offsets[-1],)
         distances : ndarray of float64, shape (offsets[-1],)
             Distances (mm) matching ``indices``.
+
+        Raises
+        ------
+        ValueError
+            If the query would return more than :data:`MAX_RADIUS_PAIRS` pairs (2**28:
+            each of the two arrays within 2 GiB). They are counted before anything is
+            collected (only when m * n passes the limit: a cheap upper bound first,
+            then :meth:`count_radius`).
         """
         queries = as_points(points, "points")
         radius = _radius(r, "r")
         if not np.isfinite(radius):
             raise ValueError("r must be finite; use query with k=n for all points")
+        workers = _workers(workers)
+        pairs = _pairs_beyond(self._tree, queries, radius, workers, MAX_RADIUS_PAIRS)
+        if pairs is not None:
+            raise ValueError(
+                f"r: {len(queries):,} query points have {pairs:,} neighbours within r = {radius:g} mm, "
+                f"more than the limit of {MAX_RADIUS_PAIRS:,} pairs a radius query returns (its index "
+                f"and distance arrays would take {gib(8.0 * pairs)} each); use a smaller r or pass "
+                "fewer points at a time")
         offsets, indices, distances = self._tree.query_radius(queries, radius, bool(sort),
-                                                              _workers(workers))
+                                                              workers)
         return _int64(offsets), _int64(indices), distances
+
+    def count_radius(self, points, r: float, *, workers: int = -1) -> np.ndarray:
+        """The number of indexed points within distance ``r`` of each query point.
+
+        What :meth:`query_radius_csr` would find, counted without collecting it (like
+        ``return_length=True`` of :meth:`scipy.spatial.cKDTree.query_ball_point`), so
+        the size of a radius query can be judged before it is made.
+
+        Parameters
+        ----------
+        points : array_like, shape (m, 3)
+            Query points (mm), finite.
+        r : float
+            Radius (mm), >= 0, finite; a point at distance exactly ``r`` counts.
+        workers : int, default -1
+            Threads to use: -1 for all, 1 for serial.
+
+        Returns
+        -------
+        ndarray of int64, shape (m,)
+        """
+        queries = as_points(points, "points")
+        radius = _radius(r, "r")
+        if not np.isfinite(radius):
+            raise ValueError(f"r must be finite; every query point has all {self.n} points within r = inf")
+        return _int64(self._tree.count_radius(queries, radius, _workers(workers)))
 
     def query_radius(self, points, r: float, *, return_distance: bool = False,
                      sort: bool = False, workers: int = -1):

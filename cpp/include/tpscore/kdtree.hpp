@@ -47,6 +47,22 @@ public:
     void radius_search(const double* query, double radius,
                        std::vector<std::pair<std::int64_t, double>>& out) const;
 
+    /// Number of points with |p - query| <= `radius` (3 doubles): the number of pairs
+    /// radius_search appends, counted without collecting them (a box of the tree that
+    /// lies inside the ball counts whole, untested). With `whole_below` > 0, a node of
+    /// at most that many points that the ball touches counts whole too: an upper bound
+    /// on the count, found with fewer node visits and no distance tests.
+    /// Single-threaded; reentrant. Precondition: radius >= 0.
+    std::int64_t radius_count(const double* query, double radius,
+                              std::int64_t whole_below = 0) const;
+
+    /// radius_count of each row of `queries` (m, 3), written to `counts` (m entries):
+    /// what query_radius would return per row (or, with `whole_below` > 0, an upper
+    /// bound of it), so a caller can judge the size of its output before asking for
+    /// it. Threaded over query rows.
+    void count_radius(const PointsRef& queries, double radius, std::int64_t* counts,
+                      int workers = 0, std::int64_t whole_below = 0) const;
+
     /// Batched radius query in CSR form: the neighbours of query i (|p - q_i| <= radius)
     /// are indices[offsets[i] .. offsets[i+1]), with their (not squared) distances;
     /// sorted by (distance, index) when `sort` is true, else in a deterministic tree
@@ -74,6 +90,13 @@ public:
 
 private:
     std::int32_t build(std::int64_t begin, std::int64_t end);
+
+    // Visits the points within `radius` of `query`: whole(node) for a box inside the
+    // ball (or, touched by it, of at most `whole_below` points), each(permuted index,
+    // squared distance) for a point of a leaf tested alone.
+    template <class Whole, class Each>
+    void visit_radius(const double* query, double radius, std::int64_t whole_below, Whole&& whole,
+                      Each&& each) const;
 
     template <class Candidates>
     void search_knn(std::int32_t node, const double* q, double bound2, Candidates& best) const;

@@ -12,7 +12,7 @@ from __future__ import annotations
 from .. import render
 from ..adaptation import AdaptOptions, adapt
 from ..face import io
-from .arguments import read_scan_surface, scan_landmarks_path
+from .arguments import integer, read_scan_surface, scan_landmarks_path
 from .progress import StepLog
 
 __all__ = ["add_adapt_parser", "adapt_command"]
@@ -26,7 +26,7 @@ def add_adapt_parser(sub) -> None:
     p.add_argument("--scan-landmarks", metavar="FILE", help="default: the .lm3/.csv/.json beside SCAN")
     p.add_argument("--out", required=True, metavar="MESH", help="fitted template (OBJ or PLY)")
     p.add_argument("--png", metavar="PNG", help="render scan, template and fit side by side")
-    p.add_argument("--levels", type=int, default=6, help="largest number of levels (default 6)")
+    p.add_argument("--levels", type=integer(1), default=6, help="largest number of levels (default 6)")
     p.add_argument("--calibration", choices=["similarity", "axes", "none"], default="similarity")
     p.add_argument("--rho", type=float, default=30.0, help="error coefficient of the global RBF (mm, default 30)")
     p.add_argument("--refinement", choices=["surface", "interpolate"], default="surface",

@@ -1,12 +1,31 @@
 """Parsing of the arguments several subcommands share."""
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 from ..face import io
 from ..face.grid import MAX_GRID_VERTICES, FaceGrid
 
-__all__ = ["grid_shape", "read_scan_surface", "scan_landmarks_path"]
+__all__ = ["grid_shape", "integer", "read_scan_surface", "scan_landmarks_path"]
+
+
+def integer(least: int):
+    """An argparse ``type``: a whole number >= `least`. argparse puts the option's name
+    before the message ("argument --source-subject: must be an integer >= 0, got '-1'"),
+    where a value checked later would fail without it (NumPy's "expected non-negative
+    integer" for a negative seed)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {least}, got {text!r}") from None
+        if value < least:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {least}, got {text!r}")
+        return value
+
+    parse.__name__ = f"integer >= {least}"
+    return parse
 
 
 def grid_shape(text: str) -> tuple[int, int]:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .arguments import grid_shape
+from .arguments import grid_shape, integer
 
 __all__ = ["add_batch_parser", "batch_command"]
 
@@ -45,11 +45,11 @@ def add_batch_parser(sub) -> None:
     p.add_argument("--truth", action="store_true",
                    help="score transfers without sidecars against the target's own scan of the expression")
     p.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler (tcp://host:8786)")
-    p.add_argument("--workers", type=int, help="local worker processes (default one per core)")
+    p.add_argument("--workers", type=integer(1), help="local worker processes (default one per core)")
     p.add_argument("--resume", action=argparse.BooleanOptionalAction, default=True,
                    help="skip jobs whose outputs are complete (default; --no-resume reruns all)")
-    p.add_argument("--retries", type=int, default=2, help="reruns of a job after an I/O error (default 2)")
-    p.add_argument("--cache-scans", type=int, default=8, help="scans each worker keeps between jobs (default 8)")
+    p.add_argument("--retries", type=integer(0), default=2, help="reruns of a job after an I/O error (default 2)")
+    p.add_argument("--cache-scans", type=integer(1), default=8, help="scans each worker keeps between jobs (default 8)")
     p.add_argument("--quiet", action="store_true", help="no progress, no summary")
 
 

@@ -30,6 +30,7 @@ from .._files import atomic_write
 from ..elastic import ElasticFace, ElasticOptions
 from ..face import io
 from ..mesh import height_field_remesh
+from .arguments import integer
 from .progress import StepLog
 
 __all__ = ["add_elastic_parser", "elastic_command"]
@@ -43,8 +44,8 @@ def add_elastic_parser(subparsers) -> None:
     source.add_argument("--source", metavar="NPZ", help="source neutral, faces, landmarks and expressive meshes")
     source.add_argument("--face-model", metavar="NPZ", help="the ICT face-area model (face_model.npz)")
     p.add_argument("--target", metavar="NPZ", help="target vertices, faces, landmarks (with --source)")
-    p.add_argument("--source-subject", type=int, default=0, help="ICT subject of the source (default 0)")
-    p.add_argument("--target-subject", type=int, default=1, help="ICT subject of the target (default 1)")
+    p.add_argument("--source-subject", type=integer(0), default=0, help="ICT subject of the source (default 0)")
+    p.add_argument("--target-subject", type=integer(0), default=1, help="ICT subject of the target (default 1)")
     p.add_argument("--expressions", default="browInnerUp_L,browDown_L,mouthSmile_L,mouthFrown_L,jawOpen,mouthPucker",
                    help="comma-separated ICT expression names (with --face-model)")
     p.add_argument("--remesh-target", action="store_true",

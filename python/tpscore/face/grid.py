@@ -382,6 +382,9 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
             cloud = pose.to_canonical(cloud)
         scan_frame = pose.transform.inverse()
 
+    # one outlier far out would stretch the grid over it, leaving no vertex on the face,
+    # and overflow the lattice indices below: judged on the valid points first
+    _check_extent(grid[valid] if grid is not None else cloud)
     lattice = None
     if grid is not None:
         lattice = _fit_lattice(grid, valid)
@@ -407,11 +410,6 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
         n_valid = len(cloud)
     if n_valid < 3:
         raise ValueError(f"scan_or_points has {n_valid} valid point(s); at least 3 are needed")
-    # one outlier far out would stretch the grid over it, leaving no vertex on the face
-    extent = np.abs(grid[valid] if lattice is not None else cloud).max()
-    if extent > MAX_COORDINATE:
-        raise ValueError(f"scan_or_points has a point {extent:.3g} mm from the origin, beyond the "
-                         f"+-{MAX_COORDINATE:.0e} mm tpscore accepts (an outlier, or not millimetres?)")
     if lattice is None:
         x_min, y_min = cloud[:, 0].min(), cloud[:, 1].min()
         x_max, y_max = cloud[:, 0].max(), cloud[:, 1].max()
@@ -638,6 +636,13 @@ def _fit_lattice(grid: np.ndarray, valid: np.ndarray):
     return fit_x + fit_y, (x.min(), x.max(), y.min(), y.max())
 
 
+def _check_extent(points: np.ndarray) -> None:
+    extent = np.abs(points).max() if points.size else 0.0
+    if extent > MAX_COORDINATE:
+        raise ValueError(f"scan_or_points has a point {extent:.3g} mm from the origin, beyond the "
+                         f"+-{MAX_COORDINATE:.0e} mm tpscore accepts (an outlier, or not millimetres?)")
+
+
 def _lattice_steps(values: np.ndarray):
     """Integer lattice index of each value and the step, or None."""
     unique = np.unique(values)
@@ -648,6 +653,8 @@ def _lattice_steps(values: np.ndarray):
     index = np.rint(position)
     if np.abs(position - index).max() > _LATTICE_TOLERANCE:
         return None
+    if index.max() > 2**31:
+        return None  # a step tiny against the range: no lattice (and no int64 index)
     return index.astype(np.int64), step
 
 

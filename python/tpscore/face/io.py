@@ -228,7 +228,9 @@ def read_bnt(path) -> BntScan:
     ValueError
         Naming the file and the problem: missing file, truncated header or data,
         len2 != 5 nrows ncols, zero rows or columns, trailing bytes, a non-ASCII
-        image name, non-finite zmin, or NaN/infinite values at valid points.
+        image name, non-finite zmin, NaN/infinite values at valid points, or a valid
+        coordinate beyond +-1e15 mm. A file shorter than its header promises is
+        reported as truncated before a grid larger than :data:`MAX_BNT_POINTS`.
     """
     with open_for_reading(path) as handle:
         where = repr(str(handle.name))
@@ -266,15 +268,17 @@ def read_bnt(path) -> BntScan:
                 f"{where}: .bnt value count len2 = {len2} is not 5 * nrows * ncols = "
                 f"5 * {nrows} * {ncols} = {5 * n_points}"
             )
+        expected = data_start + 8 * len2
+        if file_size is not None:
+            # A regular file's size is known: judge it before reading the values, and
+            # before the grid's size (a small file whose header promises 6000 x 6000
+            # points is a truncated or forged file, not a grid too large to read).
+            _check_bnt_size(where, file_size, expected, nrows, ncols)
         # judged before the values are read: a forged header can announce 4.3e9 points
         if n_points > MAX_BNT_POINTS:
             raise ValueError(
                 f"{where}: .bnt grid of {nrows} x {ncols} points is larger than the "
                 f"{MAX_BNT_POINTS:,} points tpscore reads")
-        expected = data_start + 8 * len2
-        if file_size is not None:
-            # A regular file's size is known: judge it before reading the values.
-            _check_bnt_size(where, file_size, expected, nrows, ncols)
         # One byte more than the header announces, to tell a stream's trailing bytes apart.
         body = read_limited(handle, expected - data_start + 1, where)
     if file_size is None:
@@ -294,6 +298,15 @@ def read_bnt(path) -> BntScan:
         raise ValueError(
             f"{where}: {int(bad.sum())} valid point(s) have NaN or infinite x, y, z, u or v "
             f"(first at row {r}, column {c})"
+        )
+    # a coordinate that far out is an outlier or a corrupt value, not millimetres: refused
+    # here, as every kernel refuses it, rather than left to overflow an index later
+    far = valid & (np.abs(xyz) > MAX_COORDINATE).any(axis=0)
+    if far.any():
+        r, c = np.argwhere(far)[0]
+        raise ValueError(
+            f"{where}: {int(far.sum())} valid point(s) have coordinates beyond +-{MAX_COORDINATE:.0e} mm "
+            f"(first at row {r}, column {c}: {xyz[:, r, c].tolist()}); tpscore works in millimetres"
         )
     return BntScan(
         nrows=int(nrows), ncols=int(ncols), zmin=float(zmin),
