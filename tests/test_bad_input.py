@@ -18,6 +18,7 @@ import sys
 import textwrap
 import warnings
 import zipfile
+from dataclasses import replace
 from functools import lru_cache
 
 import numpy as np
@@ -623,10 +624,24 @@ def test_a_thread_count_beyond_the_cap_is_warned_and_capped():
         tpscore.set_num_threads(0)
 
 
-def test_shuffled_landmarks_are_warned():
+def test_shuffled_landmarks_are_refused_or_with_the_check_off_warned():
     landmarks = _scans()[2].landmarks[np.random.default_rng(3).permutation(22)]
-    with pytest.warns(tpscore.ImplausibleLandmarksWarning, match="shuffled or mislabelled"):
+    with pytest.raises(tpscore.ImplausibleLandmarksError, match="check_landmarks=False"):
         tpscore.face.pose.check_landmarks(landmarks)
+    with pytest.warns(tpscore.ImplausibleLandmarksWarning, match="shuffled or mislabelled"):
+        tpscore.face.pose.check_landmarks(landmarks, refuse=False)
+
+
+def test_pipeline_a_target_with_shuffled_landmarks_is_refused_unless_the_check_is_off():
+    target = _grids()[2]
+    shuffled = replace(target, landmarks=target.landmarks[np.random.default_rng(4).permutation(22)])
+    with pytest.raises(tpscore.ImplausibleLandmarksError, match="target: the landmarks fit no face"):
+        _transfer(None, None, shuffled)
+    with pytest.warns(tpscore.ImplausibleLandmarksWarning):
+        try:
+            _transfer(None, None, shuffled, options=tpscore.TransferOptions(method="published", check_landmarks=False))
+        except ValueError:
+            pass  # what the shuffled landmarks do to the transfer itself is not the point here
 
 
 def test_one_exchanged_pair_is_warned_by_name():
@@ -644,9 +659,21 @@ def test_correct_landmarks_are_not_warned():
             tpscore.face.pose.check_landmarks(scan.landmarks)
 
 
-def test_pipeline_an_expressive_scan_of_another_person_is_warned():
-    other = datasets.make_face(datasets.random_identity(5), {"12": 1.0}, noise_mm=0.1, seed=2)
-    grid = resample_scan(other.points, other.landmarks, (100, 100))
+def _other_person(identity: int):
+    other = datasets.make_face(datasets.random_identity(identity), {"12": 1.0}, noise_mm=0.1, seed=2)
+    return resample_scan(other.points, other.landmarks, (100, 100))
+
+
+def test_pipeline_an_expressive_scan_of_another_person_is_refused_unless_allowed():
+    grid = _other_person(7)  # its still part lies 1.0 mm off: beyond two people's 0.7 mm
+    with pytest.raises(tpscore.PersonMismatchError, match="allow_other_person=True"):
+        _transfer(None, grid, options=tpscore.TransferOptions())
+    with pytest.warns(tpscore.PersonMismatchWarning, match="same person"):
+        _transfer(None, grid, options=tpscore.TransferOptions(allow_other_person=True))
+
+
+def test_an_expressive_scan_in_the_uncertain_middle_is_warned_not_refused():
+    grid = _other_person(5)  # 0.42 mm off: between one person's 0.35 mm and two people's 0.7 mm
     with pytest.warns(tpscore.PersonMismatchWarning, match="same person"):
         _transfer(None, grid, options=tpscore.TransferOptions())
 

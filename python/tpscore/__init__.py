@@ -21,6 +21,7 @@ from .expression import (
     ExpressionModel,
     MirroredMotion,
     MotionOptions,
+    PersonMismatchError,
     PersonMismatchWarning,
     RigidAlignment,
     TextureOptions,
@@ -73,7 +74,7 @@ from .mesh import (
 )
 from .face.normalise import FrameTransform, NormalisedFace, normalise_face, similarity_transform, thesis_affine_transform
 from .face.grid import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, load_scans, resample_scan
-from .face.pose import ImplausibleLandmarksWarning, MirroredLandmarksError, ScanPose, scan_pose
+from .face.pose import ImplausibleLandmarksError, ImplausibleLandmarksWarning, MirroredLandmarksError, ScanPose, scan_pose
 from .rbf import RBF, RBF_KERNELS, TPS
 from .sparse import PatternCholesky, SparseCholesky
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
@@ -111,6 +112,7 @@ __all__ = [
     "ScanPose",
     "scan_pose",
     "MirroredLandmarksError",
+    "ImplausibleLandmarksError",
     "ImplausibleLandmarksWarning",
     "load_scan",
     "load_scans",
@@ -143,6 +145,7 @@ __all__ = [
     "animate",
     "TransferResult",
     "transfer",
+    "PersonMismatchError",
     "PersonMismatchWarning",
     # submodules
     "batch",

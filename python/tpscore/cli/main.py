@@ -15,6 +15,8 @@ Errors are reported as one line on stderr (exit status 2), not as a traceback.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import argparse
 import sys
 import warnings
@@ -69,6 +71,10 @@ def _add_transfer(sub) -> None:
                    help="a real expressive scan of the target: adds an error heat map to --png "
                         "(surface distance after a rigid alignment) and prints the RMS")
     p.add_argument("--truth-landmarks", metavar="FILE", help="landmarks of D (default: D's .lm3)")
+    p.add_argument("--no-landmark-check", action="store_true",
+                   help="carry on with landmarks that fit no face (only warned)")
+    p.add_argument("--allow-other-person", action="store_true",
+                   help="carry on when the expressive scan looks like another person's (only warned)")
     p.add_argument("--quiet", action="store_true")
 
 
@@ -81,6 +87,8 @@ def run_transfer(args) -> int:
                        shape=shape)
     progress(f"read and resampled {', '.join(paths)}")
     options = TransferOptions.published() if args.method == "published" else TransferOptions()
+    options = replace(options, check_landmarks=not args.no_landmark_check,
+                      allow_other_person=args.allow_other_person)
     result = transfer(*grids, args.au, args.magnitude, options=options, progress=progress)
     progress(f"transferred {'+'.join(result.animation.labels)} at magnitude {args.magnitude:g}")
     if args.out:

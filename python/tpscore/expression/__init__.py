@@ -11,7 +11,7 @@ from .animation import Animation
 from .cut_motion import CutMotion
 from .methods import DenseTransfer, PublishedTransfer, animate, model_expression, transfer_method
 from .mirror import MirroredMotion
-from .modelling import ExpressionModel, PersonMismatchWarning
+from .modelling import ExpressionModel, PersonMismatchError, PersonMismatchWarning
 from .options import TransferOptions
 from .pipeline import TransferResult, transfer
 from .registration import DenseMotion, MotionOptions, register_surfaces
@@ -21,5 +21,5 @@ __all__ = ["transfer", "TransferOptions", "TransferResult", "Animation", "animat
            "model_expression", "ActionUnit", "ActionUnitLibrary", "Activation", "ControlPoint",
            "default_library", "RigidAlignment", "align_rigid", "fit_mirror_symmetry", "MirroredMotion",
            "DenseMotion", "MotionOptions", "register_surfaces", "TextureMatches", "TextureOptions",
-           "TextureWarning", "track_texture", "PersonMismatchWarning", "WholeExpression", "CutMotion",
+           "TextureWarning", "track_texture", "PersonMismatchWarning", "PersonMismatchError", "WholeExpression", "CutMotion",
            "DenseTransfer", "PublishedTransfer", "transfer_method"]

@@ -55,7 +55,8 @@ class DenseTransfer:
     def align(self, neutral: NormalisedFace, neutral_grid: FaceGrid, expressive_grid: FaceGrid,
               activations: Sequence[Activation]) -> NormalisedFace:
         still = still_weight(expressive_grid, activations, self.library, self.reference.landmarks)
-        return align_expressive(neutral, neutral_grid, expressive_grid, still)
+        return align_expressive(neutral, neutral_grid, expressive_grid, still,
+                                allow_other_person=self.options.allow_other_person)
 
     def model(self, neutral: NormalisedFace, expressive: NormalisedFace, activations: Sequence[Activation],
               while_registering: Callable[[], object] | None = None) -> ExpressionModel:

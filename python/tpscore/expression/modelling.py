@@ -31,7 +31,7 @@ from .mirror import Coverage, MirroredMotion
 from .registration import DenseMotion, MotionOptions, RegistrationGrid, prepare_registration, register_surfaces
 from .texture import TextureOptions, track_texture
 
-__all__ = ["ControlPointMotion", "ExpressionModel", "PersonMismatchWarning", "place_control_points", "Extended",
+__all__ = ["ControlPointMotion", "ExpressionModel", "PersonMismatchWarning", "PersonMismatchError", "place_control_points", "Extended",
            "align_expressive", "still_weight", "dense_motion", "mirror_plane", "mirrored", "coverage",
            "registration_grid", "openings", "activation_weight", "needs_realignment", "realigned",
            "SAME_PERSON_MEDIAN_MM"]
@@ -102,6 +102,12 @@ class PersonMismatchWarning(UserWarning):
     scan of another person, and the modelled motion would then be their difference."""
 
 
+class PersonMismatchError(ValueError):
+    """The source's expressive scan fits its neutral scan so badly that it is another
+    person's. A caller sure of the scans passes ``allow_other_person=True``
+    (``TransferOptions(allow_other_person=True)``)."""
+
+
 #: Median distance (mm) of the expressive scan's still part from the neutral surface
 #: after the rigid alignment, above which :func:`align_expressive` warns. Measured on
 #: the generated development scans (0.15 mm depth noise): one person's still part (the
@@ -109,6 +115,11 @@ class PersonMismatchWarning(UserWarning):
 #: another person's 0.44 mm and more; with no still part (an emotion that moves the
 #: whole face), one person's face lies 0.5 to 0.85 mm off, another's 1.7 mm and more.
 SAME_PERSON_MEDIAN_MM = {"still": 0.35, "whole": 1.3}
+#: Above these the scans are refused as two people's (:class:`PersonMismatchError`):
+#: two and a half times the farthest one person's scans lay on the development scans
+#: (still parts 0.07-0.28 mm, against another person's 0.40-3.7 mm; whole faces 0.85);
+#: between the two limits they are warned about.
+OTHER_PERSON_MEDIAN_MM = {"still": 0.7, "whole": 2.2}
 
 
 def activation_weight(activation: Activation, points, landmarks, library: ActionUnitLibrary,
@@ -156,21 +167,28 @@ def needs_realignment(activations: Sequence[Activation]) -> bool:
 
 
 def align_expressive(neutral: NormalisedFace, neutral_grid: FaceGrid, expressive_grid: FaceGrid,
-                     still=None) -> NormalisedFace:
+                     still=None, *, allow_other_person: bool = False) -> NormalisedFace:
     """The source's expressive scan in the reference frame, by rigid alignment onto the
     same person's neutral scan followed by the neutral scan's normalisation.
 
     ``still`` (a weight per vertex of the expressive grid, :func:`still_weight`) says
-    which part the alignment relies on; None: the whole face, robustly.
+    which part the alignment relies on; None: the whole face, robustly. Scans that fit
+    as two people's do are refused (:class:`PersonMismatchError`) unless
+    ``allow_other_person``, and warned about where they may be.
     """
     alignment = align_rigid(expressive_grid, neutral_grid, fixed_surface=None, still_weight=still)
-    limit = SAME_PERSON_MEDIAN_MM["whole" if still is None else "still"]
-    if alignment.median_distance_mm > limit:
+    kind = "whole" if still is None else "still"
+    limit, refused = SAME_PERSON_MEDIAN_MM[kind], OTHER_PERSON_MEDIAN_MM[kind]
+    distance = alignment.median_distance_mm
+    if distance > limit:
         part = "the face" if still is None else "its still part"
-        warnings.warn(
-            f"the expressive scan does not fit the neutral scan rigidly: {part} lies a median "
-            f"{alignment.median_distance_mm:.2f} mm off it after the alignment (two scans of one person: "
-            f"under {limit:g} mm). Are they scans of the same person?", PersonMismatchWarning, stacklevel=3)
+        found = (f"the expressive scan does not fit the neutral scan rigidly: {part} lies a median "
+                 f"{distance:.2f} mm off it after the alignment (two scans of one person: under {limit:g} mm)")
+        if distance > refused and not allow_other_person:
+            raise PersonMismatchError(
+                f"{found}, beyond the {refused:g} mm of two people's scans: they are not one person's. If they "
+                "are, pass allow_other_person=True (TransferOptions(allow_other_person=True))")
+        warnings.warn(f"{found}. Are they scans of the same person?", PersonMismatchWarning, stacklevel=3)
     transform = alignment.transform.then(neutral.transform)
     moved = replace(expressive_grid, points=transform.apply(expressive_grid.points),
                     landmarks=transform.apply(expressive_grid.landmarks))

@@ -50,6 +50,12 @@ class TransferOptions:
         Settings of the dense registration.
     texture : TextureOptions
         Settings of the texture tracking.
+    check_landmarks : bool
+        Refuse a face whose landmarks fit no face (:class:`ImplausibleLandmarksError`:
+        shuffled or mislabelled); False only warns.
+    allow_other_person : bool
+        Carry on when the source's expressive scan fits its neutral scan so badly that
+        it is another person's (:class:`PersonMismatchError`); it is then only warned.
     """
 
     method: str = "default"
@@ -60,11 +66,13 @@ class TransferOptions:
     merge_landmarks_mm: float = 3.0
     motion: MotionOptions = MotionOptions()
     texture: TextureOptions = TextureOptions()
+    check_landmarks: bool = True
+    allow_other_person: bool = False
 
     def __post_init__(self):
         check_options(self, non_negative=("transition_mm", "side_transition_mm", "upper_spill",
                                           "merge_landmarks_mm"),
-                      flags=("mirror_average",), choices={"method": METHODS})
+                      flags=("mirror_average", "check_landmarks", "allow_other_person"), choices={"method": METHODS})
         if not isinstance(self.motion, MotionOptions):
             raise ValueError(f"TransferOptions.motion must be a MotionOptions, got {type(self.motion).__name__}")
         if not isinstance(self.texture, TextureOptions):

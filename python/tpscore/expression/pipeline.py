@@ -237,7 +237,7 @@ def _check_arguments(faces: dict, options, reference, library) -> None:
         raise ValueError(f"library must be an ActionUnitLibrary, got {type(library).__name__}")
     for name, face in faces.items():
         if isinstance(face, FaceGrid):
-            _check_face(name, face)
+            _check_face(name, face, options.check_landmarks)
 
 
 class _Clock:
@@ -262,9 +262,11 @@ def _stages(method, activations, faces: dict, second_thread, clock: _Clock):
     mirror planes) runs on the second thread ahead of use."""
     reference_landmarks = method.reference.landmarks
     clock.lap("setup")
-    expressive_scan = second_thread.submit(_scan, "source_expressive", faces["source_expressive"])
-    target_ready = second_thread.submit(_target_face, faces["target"], reference_landmarks, method.normalisation)
-    neutral_grid = _scan("source_neutral", faces["source_neutral"])
+    refuse = method.options.check_landmarks
+    expressive_scan = second_thread.submit(_scan, "source_expressive", faces["source_expressive"], refuse)
+    target_ready = second_thread.submit(_target_face, faces["target"], reference_landmarks, method.normalisation,
+                                        refuse)
+    neutral_grid = _scan("source_neutral", faces["source_neutral"], refuse)
     expressive_grid = expressive_scan.result()
     if not all(isinstance(face, FaceGrid) for face in faces.values()):
         clock.lap("read")
@@ -299,18 +301,18 @@ def _stages(method, activations, faces: dict, second_thread, clock: _Clock):
     return animation, model
 
 
-def _scan(name: str, scan: Scan) -> FaceGrid:
+def _scan(name: str, scan: Scan, refuse_landmarks: bool) -> FaceGrid:
     """The face itself, or the scan at its path read and checked."""
     if isinstance(scan, FaceGrid):
         return scan
     face = load_scan(scan)
-    _check_face(name, face)
+    _check_face(name, face, refuse_landmarks)
     return face
 
 
-def _target_face(target: Scan, reference_landmarks, normalisation: str) -> NormalisedFace:
+def _target_face(target: Scan, reference_landmarks, normalisation: str, refuse_landmarks: bool) -> NormalisedFace:
     with _naming("target"):
-        return normalise_face(_scan("target", target), reference_landmarks, normalisation)
+        return normalise_face(_scan("target", target, refuse_landmarks), reference_landmarks, normalisation)
 
 
 def _prepare(method, neutral: NormalisedFace, target: Future, activations) -> None:
@@ -354,16 +356,17 @@ def _naming(name: str):
         raise named from None
 
 
-def _check_face(name: str, face: FaceGrid) -> None:
+def _check_face(name: str, face: FaceGrid, refuse_landmarks: bool = True) -> None:
     """Every face needs the landmarks of a landmark TPS and of the upper/lower split,
-    landmarks that can be a face's, and the canonical pose and unit."""
+    landmarks that can be a face's (refused when they fit none, with
+    ``refuse_landmarks``), and the canonical pose and unit."""
     present = int(np.isfinite(face.landmarks).all(axis=1).sum())
     if present < MIN_LANDMARKS:
         raise ValueError(f"{name}: only {present} of the {N_LANDMARKS} landmarks are present; a transfer "
                          f"needs at least {MIN_LANDMARKS} (give the scan's landmark file)")
     with _naming(name):
         region_boundary(face.landmarks)
-    pose = check_landmarks(face.landmarks, f"{name}: the landmarks")
+    pose = check_landmarks(face.landmarks, f"{name}: the landmarks", refuse=refuse_landmarks)
     if pose is not None and pose.plausible and (
             pose.mm_per_unit != 1.0 or not np.array_equal(pose.rotation, np.eye(3))):
         # resample_scan brings scans into the canonical frame; this grid was built otherwise

@@ -43,6 +43,7 @@ __all__ = [
     "reference_landmarks",
     "MirroredLandmarksError",
     "ImplausibleLandmarksWarning",
+    "ImplausibleLandmarksError",
     "UNITS_MM",
     "IMPLAUSIBLE_RESIDUAL",
 ]
@@ -61,6 +62,11 @@ _SIZE_RANGE = (0.5, 2.0)
 #: was built from) and 0.15 to 0.19 (the ICT faces of the generated development scans,
 #: whose proportions differ), a shuffled set to 0.85 and more.
 IMPLAUSIBLE_RESIDUAL = 0.3
+#: Above this residual the landmarks are refused (:class:`ImplausibleLandmarksError`)
+#: rather than warned about: the development scans' landmarks fit to 0.21 at most (an
+#: open mouth included), a shuffled set to 0.87 and more, four of them exchanged in a
+#: cycle to 0.34-0.8; between the two limits they are warned about.
+IMPLAUSIBLE_REFUSED_RESIDUAL = 0.6
 
 # Landmarks are mirrored when their mirror image fits the reference face better than
 # they do. Measured: correct labels fit at least 2.1 times better than their mirror
@@ -77,6 +83,11 @@ _MIN_POSE_LANDMARKS = 4
 class MirroredLandmarksError(ValueError):
     """The landmarks are a mirror image of a face: their left and right are swapped, or
     the scan's frame is left-handed."""
+
+
+class ImplausibleLandmarksError(ValueError):
+    """The landmarks fit no face: shuffled or mislabelled beyond doubt. A caller sure of
+    them passes ``check_landmarks=False`` (``TransferOptions(check_landmarks=False)``)."""
 
 
 class ImplausibleLandmarksWarning(UserWarning):
@@ -251,13 +262,16 @@ def scan_pose(landmarks) -> ScanPose | None:
     return ScanPose(nearest, mm_per_unit, rotation, float(scale), residual, mirrored_residual, residuals, swapped)
 
 
-def check_landmarks(landmarks, name: str = "landmarks") -> ScanPose | None:
+def check_landmarks(landmarks, name: str = "landmarks", *, refuse: bool = True) -> ScanPose | None:
     """Check that landmarks can be a face's, and return their pose.
 
     Raises
     ------
     MirroredLandmarksError
         The landmarks are a mirror image of a face (left and right swapped).
+    ImplausibleLandmarksError
+        With ``refuse``, when they fit the reference face beyond doubt badly
+        (:data:`IMPLAUSIBLE_REFUSED_RESIDUAL`); without it, that is warned.
 
     Warns
     -----
@@ -282,6 +296,10 @@ def check_landmarks(landmarks, name: str = "landmarks") -> ScanPose | None:
         problems.append("left and right exchanged: " + "; ".join(
             f"{left!r} lies right of {right!r}" for left, right in pose.swapped_pairs))
     if problems:
+        if refuse and pose.residual > IMPLAUSIBLE_REFUSED_RESIDUAL:
+            raise ImplausibleLandmarksError(
+                f"{name} fit no face: {'; '.join(problems)}. Shuffled or mislabelled? If they are "
+                "right, pass check_landmarks=False (TransferOptions(check_landmarks=False))")
         warnings.warn(f"{name} look shuffled or mislabelled: {'; '.join(problems)}",
                       ImplausibleLandmarksWarning, stacklevel=3)
     return pose
