@@ -282,7 +282,14 @@ CASES = [
      "TransferResult"),
     ("rig-gltf-suffix", lambda t: tpscore.write_gltf(t / "rig.fbx", None), ValueError, "path: "),
     ("rig-gltf-not-a-rig", lambda t: tpscore.write_gltf(t / "rig.glb", "rig"), ValueError, "rig must be a Rig"),
+    ("rig-usd-suffix", lambda t: _write_usd(t / "rig.glb", None), ValueError, "a USD file ends in"),
 ]
+
+
+def _write_usd(path, rig):
+    from tpscore.rig.usd import write_usd
+
+    return write_usd(path, rig)
 
 
 @pytest.mark.parametrize("call, error, word", [pytest.param(*case[1:], id=case[0]) for case in CASES])

@@ -1,6 +1,6 @@
 """Rigs: the demo source's expressions transferred onto the demo target and written as
-glTF 2.0, read back by pygltflib; the ARKit names and their halves; the source
-folders' layouts; bad input."""
+glTF 2.0 and USD, read back by pygltflib and usd-core; the ARKit names and their
+halves; the source folders' layouts; bad input."""
 from __future__ import annotations
 
 import io as stdio
@@ -240,3 +240,34 @@ def test_the_package_is_the_function_and_keeps_its_modules():
 
     assert callable(tpscore.rig) and tpscore.rig.gltf.write_gltf is tpscore.write_gltf
     assert names.ARKIT_NAMES is ARKIT_NAMES
+
+
+@pytest.mark.parametrize("suffix", [".usda", ".usdc"])
+def test_usd_holds_a_blend_shape_per_morph_target(made, tmp_path, suffix):
+    pytest.importorskip("pxr", reason="USD output needs usd-core (the usd extra)")
+    from pxr import Usd, UsdGeom, UsdSkel, Vt
+    from tpscore.rig.usd import write_usd
+
+    rig = Rig.from_results(made[0].results, names="arkit")
+    path = write_usd(tmp_path / f"rig{suffix}", rig, animations=True)
+    assert (tmp_path / "rig_texture.png").is_file()
+    stage = Usd.Stage.Open(str(path))
+    assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    face = stage.GetPrimAtPath("/Rig/Face")
+    points = np.array(face.GetAttribute("points").Get())
+    assert np.abs(points - rig.vertices / 1000).max() < POSITION_TOLERANCE_M
+    binding = UsdSkel.BindingAPI(face)
+    assert list(binding.GetBlendShapesAttr().Get()) == rig.target_names
+    shapes = UsdSkel.BlendShapeQuery(binding)
+    assert shapes.GetNumBlendShapes() == len(rig.targets)
+    for k, name in enumerate(rig.target_names):
+        # UsdSkel's own evaluation of the shape at weight 1
+        weights = shapes.ComputeSubShapeWeights(Vt.FloatArray([float(j == k) for j in range(len(rig.targets))]))
+        posed = face.GetAttribute("points").Get()
+        assert shapes.ComputeDeformedPoints(*weights, shapes.ComputeBlendShapePointIndices(),
+                                            shapes.ComputeSubShapePointOffsets(), posed)
+        moved = (np.array(posed) - points) * 1000
+        assert np.abs(moved - rig.displacement(name)).max() < DISPLACEMENT_TOLERANCE_MM, name
+    weights = UsdSkel.Animation(stage.GetPrimAtPath("/Rig/Skeleton/Weights")).GetBlendShapeWeightsAttr()
+    assert list(weights.Get(0.0)) == [0.0, 0.0, 0.0] and list(weights.Get(12.0)) == [1.0, 1.0, 0.0]
+    assert list(weights.Get(36.0)) == [0.0, 0.0, 1.0]
