@@ -437,6 +437,12 @@ def _transfer_args(files, *extra):
             "--method", "published", "--quiet", *extra]
 
 
+def _rig_args(files, folder, *extra):
+    given = {"--source-dir": str(folder), "--target": files[2], "--out": str(folder / "rig.glb")}
+    given.update(zip(extra[::2], extra[1::2]))
+    return ["rig", *[item for pair in given.items() for item in pair], "--quiet"]
+
+
 CLI_CASES = [
     ("pipeline-cli-usage-is-one-line", lambda f, t: ["transfer", "--au"], "--help"),
     ("pipeline-cli-grid-4096", lambda f, t: _transfer_args(f, "--grid", "4096x4096"), "--grid"),
@@ -446,6 +452,12 @@ CLI_CASES = [
     ("pipeline-cli-out-in-a-missing-folder", lambda f, t: _transfer_args(f, "--out", str(t / "no" / "r.npz")),
      "does not exist"),
     ("pipeline-cli-scan-is-a-folder", lambda f, t: _transfer_args([f[0], f[1], str(t)]), "is a folder"),
+    ("pipeline-cli-rig-unknown-names", lambda f, t: _rig_args(f, t, "--names", "fbx"), "--names"),
+    ("pipeline-cli-rig-missing-folder", lambda f, t: _rig_args(f, t, "--source-dir", str(t / "missing")),
+     "--source-dir"),
+    ("pipeline-cli-rig-out-suffix", lambda f, t: _rig_args(f, t, "--out", str(t / "rig.fbx")), "--out"),
+    ("pipeline-cli-rig-out-in-a-missing-folder", lambda f, t: _rig_args(f, t, "--out", str(t / "no" / "r.glb")),
+     "does not exist"),
     ("pipeline-cli-elastic-corrupt-npz",
      lambda f, t: ["elastic", "--face-model", _write(t, "m.npz", b"PK\x03\x04garbage"), "--out", str(t / "o")],
      "corrupt"),

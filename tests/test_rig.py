@@ -1,6 +1,6 @@
 """Rigs: the demo source's expressions transferred onto the demo target and written as
 glTF 2.0 and USD, read back by pygltflib and usd-core; the ARKit names and their
-halves; the source folders' layouts; bad input."""
+halves; the source folders' layouts; bad input; the command line."""
 from __future__ import annotations
 
 import io as stdio
@@ -12,6 +12,7 @@ import pytest
 from PIL import Image
 
 import tpscore
+from tpscore.cli import main
 from tpscore.cli.demo import write_demo_scans
 from tpscore.rig import ARKIT_NAMES, ARKIT_TABLE, Rig, plan_targets, source_scans, write_gltf
 from tpscore.rig.names import MIDLINE_BAND_MM, part_weights
@@ -271,3 +272,35 @@ def test_usd_holds_a_blend_shape_per_morph_target(made, tmp_path, suffix):
     weights = UsdSkel.Animation(stage.GetPrimAtPath("/Rig/Skeleton/Weights")).GetBlendShapeWeightsAttr()
     assert list(weights.Get(0.0)) == [0.0, 0.0, 0.0] and list(weights.Get(12.0)) == [1.0, 1.0, 0.0]
     assert list(weights.Get(36.0)) == [0.0, 0.0, 1.0]
+
+@pytest.mark.parametrize("arguments, word", [
+    pytest.param(lambda s, t: ["--names", "blender"], "--names", id="unknown-names"),
+    pytest.param(lambda s, t: ["--source-dir", str(t / "missing")], "--source-dir", id="missing-folder"),
+    pytest.param(lambda s, t: ["--source-dir", str(t)], "--source-dir: no expressive scan", id="no-expressions"),
+    pytest.param(lambda s, t: ["--au", "27"], "--au: no source scan shows AU27", id="absent-au"),
+    pytest.param(lambda s, t: ["--out", str(t / "rig.fbx")], "--out", id="unknown-format"),
+])
+def test_the_command_line_names_the_option(scans, tmp_path, capsys, arguments, word):
+    given = dict(zip(*[iter(["--source-dir", str(scans), "--target", str(scans / "target_neutral.bnt"),
+                             "--out", str(tmp_path / "rig.glb")])] * 2))
+    extra = arguments(scans, tmp_path)
+    given.update(zip(extra[::2], extra[1::2]))
+    try:
+        code = main(["rig", *[item for pair in given.items() for item in pair], "--quiet"])
+    except SystemExit as stopped:  # argparse's own refusals
+        code = stopped.code
+    err = capsys.readouterr().err
+    assert code == 2 and word in err and err.count("\n") == 1, err
+
+
+def test_tpscore_rig_writes_an_arkit_glb(scans, tmp_path, capsys):
+    out = tmp_path / "rig.glb"
+    code = main(["rig", "--source-dir", str(scans), "--target", str(scans / "target_neutral.bnt"), "--out", str(out),
+                 "--au", "4", "--names", "arkit", "--animations", "--grid", "80x80"])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "AU4 (1/1): transferred" in printed and f"wrote {out}" in printed
+    gltf = pygltflib.GLTF2().load(str(out))
+    assert gltf.meshes[0].extras["targetNames"] == ["browDownLeft", "browDownRight"]
+    assert [a.name for a in gltf.animations] == ["AU4"]
+    assert gltf.accessors[gltf.meshes[0].primitives[0].attributes.POSITION].count < 80 * 80
