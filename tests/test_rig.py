@@ -1,6 +1,6 @@
 """Rigs: the demo source's expressions transferred onto the demo target and written as
-glTF 2.0 and USD, read back by pygltflib and usd-core; the ARKit names and their
-halves; the source folders' layouts; bad input; the command line."""
+glTF 2.0 and USD, read back by pygltflib, usd-core and Blender; the ARKit names and
+their halves; the source folders' layouts; bad input; the command line."""
 from __future__ import annotations
 
 import io as stdio
@@ -304,3 +304,65 @@ def test_tpscore_rig_writes_an_arkit_glb(scans, tmp_path, capsys):
     assert gltf.meshes[0].extras["targetNames"] == ["browDownLeft", "browDownRight"]
     assert [a.name for a in gltf.animations] == ["AU4"]
     assert gltf.accessors[gltf.meshes[0].primitives[0].attributes.POSITION].count < 80 * 80
+
+
+# Blender's importer turns glTF's +y up into its own +z up: (x, y, z) -> (x, -z, y).
+_BLENDER_SCRIPT = """
+import sys
+import bpy
+import numpy as np
+
+glb, out = sys.argv[1], sys.argv[2]
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.import_scene.gltf(filepath=glb)
+faces = [o for o in bpy.data.objects if o.type == "MESH"]
+face = faces[0]
+keys = face.data.shape_keys.key_blocks
+
+def coordinates(points):
+    flat = np.empty(len(points) * 3)
+    points.foreach_get("co", flat)
+    return flat.reshape(-1, 3)
+
+arrays = {f"key{k}": coordinates(block.data) for k, block in enumerate(keys)}
+keys[1].value = 1.0   # the first morph target at weight 1, as an animator sets it
+evaluated = face.evaluated_get(bpy.context.evaluated_depsgraph_get()).to_mesh()
+arrays["moved"] = coordinates(evaluated.vertices)
+arrays["world"] = np.array(face.matrix_world)
+np.savez(out, names=np.array([block.name for block in keys]), meshes=len(faces),
+         images=len(bpy.data.images), **arrays)
+"""
+
+
+def test_blender_opens_the_rig_with_a_shape_key_per_morph_target(made, glb, blender, tmp_path):
+    from headless_blender import run_blender
+    from scipy.spatial import cKDTree
+
+    rig, _ = made
+    arkit = tmp_path / "arkit.glb"
+    write_gltf(arkit, Rig.from_results(rig.results, names="arkit"))
+    run_blender(blender, _BLENDER_SCRIPT, arkit, tmp_path / "blender.npz")
+    with np.load(tmp_path / "blender.npz") as seen:
+        seen = dict(seen)
+    names = ["mouthSmileLeft", "mouthSmileRight", "surprise"]
+    assert seen["names"].tolist() == ["Basis", *names]
+    assert int(seen["meshes"]) == 1 and int(seen["images"]) == 1
+    assert np.allclose(seen["world"], np.eye(4))
+
+    def in_blender(points_mm):
+        metres = np.asarray(points_mm) / 1000.0
+        return np.column_stack([metres[:, 0], -metres[:, 2], metres[:, 1]])
+
+    # the importer may order the vertices its own way: match them by position
+    basis = seen["key0"]
+    distance, order = cKDTree(basis).query(in_blender(rig.vertices))
+    assert len(basis) == len(rig.vertices) and distance.max() < 1e-6 and len(set(order)) == len(order)
+    arkit_rig = Rig.from_results(rig.results, names="arkit")
+    for k, name in enumerate(names, 1):
+        moved = (seen[f"key{k}"] - basis)[order]
+        expected = in_blender(arkit_rig.displacement(name))
+        assert np.abs(moved - expected).max() * 1000 < DISPLACEMENT_TOLERANCE_MM, name
+    # the first key at 1 moves the mesh as the transfer moves the target's left mouth corner
+    moved = (seen["moved"] - basis)[order]
+    assert np.abs(moved - in_blender(arkit_rig.displacement("mouthSmileLeft"))).max() * 1000 < \
+        DISPLACEMENT_TOLERANCE_MM
