@@ -13,9 +13,10 @@ $(VENV)/bin/python:
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 
-# Reinstall whenever a source changes; the build folder makes it incremental.
+# Reinstall whenever a source changes; the build folder makes it incremental. The usd
+# extra is installed too, so that the tests exercise the rigs' USD output.
 $(VENV)/.installed: $(VENV)/bin/python $(SOURCES)
-	$(PY) -m pip install --quiet ".[test,bench]"
+	$(PY) -m pip install --quiet ".[test,bench,usd]"
 	@touch $@
 
 install: $(VENV)/.installed

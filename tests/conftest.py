@@ -39,3 +39,17 @@ def chromium():
                     "could not install it here (not root, no apt-get, no network to the Debian "
                     "mirrors, or TPSCORE_NO_BROWSER_INSTALL set)")
     return path
+
+
+@pytest.fixture(scope="session")
+def blender():
+    """The environment in which a subprocess imports Blender's ``bpy`` (run scripts with
+    ``headless_blender.run_blender``): installed with pip on first use into a folder of
+    its own (set TPSCORE_NO_BLENDER_INSTALL to forbid that); the test skips where bpy
+    cannot be had, e.g. no wheel for this Python."""
+    from headless_blender import blender_environment
+
+    environment, why = blender_environment()
+    if environment is None:
+        pytest.skip(f"needs Blender's bpy module: {why}")
+    return environment

@@ -332,7 +332,45 @@ CASES = [
      "profile view"),
     ("pipeline-target-grid-in-metres", lambda t: _transfer(None, None, _turned(_grids()[2], np.eye(3), 1e-3)),
      ValueError, "metres"),
+    # rigs: refused before any scan is read
+    ("rig-names-unknown", lambda t: tpscore.rig("a.bnt", {"12": "b.bnt"}, "c.bnt", names="fbx"), ValueError,
+     "names must be one of"),
+    ("rig-expressions-missing-folder", lambda t: tpscore.rig(None, t / "missing", "c.bnt"), ValueError,
+     "folder not found"),
+    ("rig-expressions-folder-without-scans", lambda t: tpscore.rig(None, t, "c.bnt"), ValueError,
+     "expressions: no expressive scan"),
+    ("rig-expressions-as-a-list", lambda t: tpscore.rig("a.bnt", ["12"], "c.bnt"), ValueError,
+     "expressions must be a folder"),
+    ("rig-expressions-empty-mapping", lambda t: tpscore.rig("a.bnt", {}, "c.bnt"), ValueError, "mapping is empty"),
+    ("rig-expressions-unknown-au", lambda t: tpscore.rig("a.bnt", {"99": "b.bnt"}, "c.bnt"), ValueError,
+     "unknown action unit"),
+    ("rig-expressions-one-twice", lambda t: tpscore.rig("a.bnt", {"12": "b.bnt", "AU12": "b.bnt"}, "c.bnt"),
+     ValueError, "are both AU12"),
+    ("rig-expressions-scan-as-a-number", lambda t: tpscore.rig("a.bnt", {"12": 3}, "c.bnt"), ValueError,
+     "must be a scan's path"),
+    ("rig-neutral-none-with-a-mapping", lambda t: tpscore.rig(None, {"12": "b.bnt"}, "c.bnt"), ValueError,
+     "source_neutral"),
+    ("rig-action-units-as-text", lambda t: tpscore.rig("a.bnt", {"12": "b.bnt"}, "c.bnt", action_units="12"),
+     ValueError, "action_units must be"),
+    ("rig-action-units-absent", lambda t: tpscore.rig("a.bnt", {"12": "b.bnt"}, "c.bnt", action_units=["4"]),
+     ValueError, "action_units: no source scan shows AU4"),
+    ("rig-grid-1x1", lambda t: tpscore.rig("a.bnt", {"12": "b.bnt"}, "c.bnt", grid=(1, 1)), ValueError,
+     "grid must be"),
+    ("rig-source-neutral-missing", lambda t: tpscore.rig(str(t / "a.bnt"), {"12": "b.bnt"}, str(t / "c.bnt")),
+     ValueError, "a.bnt': file not found"),
+    ("rig-from-no-results", lambda t: tpscore.Rig.from_results({}), ValueError, "results must be"),
+    ("rig-from-results-not-transfers", lambda t: tpscore.Rig.from_results({"AU12": 1}), ValueError,
+     "TransferResult"),
+    ("rig-gltf-suffix", lambda t: tpscore.write_gltf(t / "rig.fbx", None), ValueError, "path: "),
+    ("rig-gltf-not-a-rig", lambda t: tpscore.write_gltf(t / "rig.glb", "rig"), ValueError, "rig must be a Rig"),
+    ("rig-usd-suffix", lambda t: _write_usd(t / "rig.glb", None), ValueError, "a USD file ends in"),
 ]
+
+
+def _write_usd(path, rig):
+    from tpscore.rig.usd import write_usd
+
+    return write_usd(path, rig)
 
 
 @pytest.mark.parametrize("call, error, word", [pytest.param(*case[1:], id=case[0]) for case in CASES])
@@ -483,6 +521,12 @@ def _transfer_args(files, *extra):
             "--method", "published", "--quiet", *extra]
 
 
+def _rig_args(files, folder, *extra):
+    given = {"--source-dir": str(folder), "--target": files[2], "--out": str(folder / "rig.glb")}
+    given.update(zip(extra[::2], extra[1::2]))
+    return ["rig", *[item for pair in given.items() for item in pair], "--quiet"]
+
+
 CLI_CASES = [
     ("pipeline-cli-usage-is-one-line", lambda f, t: ["transfer", "--au"], "--help"),
     ("pipeline-cli-grid-4096", lambda f, t: _transfer_args(f, "--grid", "4096x4096"), "--grid"),
@@ -509,6 +553,12 @@ CLI_CASES = [
      "argument --retries: must be an integer >= 0"),
     ("pipeline-cli-batch-zero-cache", lambda f, t: ["batch", str(t), "--out", str(t / "o"), "--cache-scans", "0"],
      "argument --cache-scans: must be an integer >= 1"),
+    ("pipeline-cli-rig-unknown-names", lambda f, t: _rig_args(f, t, "--names", "fbx"), "--names"),
+    ("pipeline-cli-rig-missing-folder", lambda f, t: _rig_args(f, t, "--source-dir", str(t / "missing")),
+     "--source-dir"),
+    ("pipeline-cli-rig-out-suffix", lambda f, t: _rig_args(f, t, "--out", str(t / "rig.fbx")), "--out"),
+    ("pipeline-cli-rig-out-in-a-missing-folder", lambda f, t: _rig_args(f, t, "--out", str(t / "no" / "r.glb")),
+     "does not exist"),
     ("pipeline-cli-elastic-corrupt-npz",
      lambda f, t: ["elastic", "--face-model", _write(t, "m.npz", b"PK\x03\x04garbage"), "--out", str(t / "o")],
      "corrupt"),

@@ -10,6 +10,7 @@
     tpscore adapt TEMPLATE SCAN --template-landmarks T.lm3 --scan-landmarks S.lm3 --out fitted.obj
     tpscore batch DIR --out OUT [--au 12 4] [--pairs next-2] [--scheduler tcp://host:8786]
     tpscore simulate SCAN --au 12:0.6 [--jaw 10] --out settled.npz [--gif smile.gif]   (physical skin)
+    tpscore rig --source-dir FOLDER --target NEUTRAL.bnt --out rig.glb [--au 12 4] [--names au|arkit]
 
 Errors are reported as one line on stderr (exit status 2), not as a traceback.
 """
@@ -38,6 +39,7 @@ from .demo import run_demo
 from .elastic import add_elastic_parser, elastic_command
 from .outputs import transfer_picture, write_result_mesh, write_result_page, write_sweep_gif
 from .progress import StepLog
+from .rig import add_rig_parser, rig_command
 from .simulate import add_simulate_parser, simulate_command
 
 __all__ = ["main"]
@@ -165,6 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_adapt_parser(sub)
     add_batch_parser(sub)
     add_simulate_parser(sub)
+    add_rig_parser(sub)
     b = sub.add_parser("build-afm", help="rebuild the average face model from the procedural faces")
     b.add_argument("--out", default="average_face.npz")
     b.add_argument("--grid", default="150x150")
@@ -178,7 +181,7 @@ def main(argv=None) -> int:
     handlers = {"transfer": run_transfer, "demo": run_demo_command, "build-afm": run_build_afm,
                 "elastic": elastic_command, "adapt": adapt_command,
                 "batch": batch_command,
-                "simulate": simulate_command}
+                "simulate": simulate_command, "rig": rig_command}
     with warnings.catch_warnings():
         warnings.simplefilter("default")
         warnings.showwarning = lambda message, *_args, **_kw: print(

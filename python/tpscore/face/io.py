@@ -49,6 +49,7 @@ __all__ = [
     "read_mesh",
     "write_mesh",
     "write_textured_obj",
+    "png_bytes",
     "write_png",
     "read_image",
 ]
@@ -127,12 +128,18 @@ def read_image(path) -> np.ndarray:
     return rgb
 
 
-def write_png(path, image) -> None:
-    """Write an (h, w, 3) uint8 RGB image as PNG (atomically)."""
+def png_bytes(image) -> bytes:
+    """An (h, w, 3) uint8 RGB image encoded as PNG (for a file, or a container such
+    as a glTF binary that embeds it)."""
     picture = np.ascontiguousarray(as_colour_image(image))
     buffer = _stdio.BytesIO()
     Image.fromarray(picture, "RGB").save(buffer, format="PNG")
-    atomic_write(path, buffer.getvalue())
+    return buffer.getvalue()
+
+
+def write_png(path, image) -> None:
+    """Write an (h, w, 3) uint8 RGB image as PNG (atomically)."""
+    atomic_write(path, png_bytes(image))
 
 
 # --------------------------------------------------------------------------- .bnt
