@@ -368,7 +368,7 @@ CASES = [
 
 
 def _write_usd(path, rig):
-    from tpscore.rig.usd import write_usd
+    from tpscore.rigging.usd import write_usd
 
     return write_usd(path, rig)
 

@@ -14,8 +14,8 @@ from PIL import Image
 import tpscore
 from tpscore.cli import main
 from tpscore.cli.demo import write_demo_scans
-from tpscore.rig import ARKIT_NAMES, ARKIT_TABLE, Rig, plan_targets, source_scans, write_gltf
-from tpscore.rig.names import MIDLINE_BAND_MM, part_weights
+from tpscore.rigging import ARKIT_NAMES, ARKIT_TABLE, Rig, plan_targets, source_scans, write_gltf
+from tpscore.rigging.names import MIDLINE_BAND_MM, part_weights
 
 pygltflib = pytest.importorskip("pygltflib")
 
@@ -236,10 +236,10 @@ def test_bad_input_names_the_argument(scans, tmp_path, call, word):
         call(scans, tmp_path)
 
 
-def test_the_package_is_the_function_and_keeps_its_modules():
-    import tpscore.rig.names as names
+def test_the_function_and_the_package_are_both_at_hand():
+    import tpscore.rigging.names as names
 
-    assert callable(tpscore.rig) and tpscore.rig.gltf.write_gltf is tpscore.write_gltf
+    assert tpscore.rig is tpscore.rigging.build.rig and tpscore.rigging.gltf.write_gltf is tpscore.write_gltf
     assert names.ARKIT_NAMES is ARKIT_NAMES
 
 
@@ -247,7 +247,7 @@ def test_the_package_is_the_function_and_keeps_its_modules():
 def test_usd_holds_a_blend_shape_per_morph_target(made, tmp_path, suffix):
     pytest.importorskip("pxr", reason="USD output needs usd-core (the usd extra)")
     from pxr import Usd, UsdGeom, UsdSkel, Vt
-    from tpscore.rig.usd import write_usd
+    from tpscore.rigging.usd import write_usd
 
     rig = Rig.from_results(made[0].results, names="arkit")
     path = write_usd(tmp_path / f"rig{suffix}", rig, animations=True)

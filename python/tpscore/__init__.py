@@ -4,7 +4,7 @@ The public API lives in the submodules and is re-exported here; the compiled
 kernels in ``tpscore._core`` are private. Procedural faces are in
 :mod:`tpscore.datasets`, the demo's faces in :mod:`tpscore.demo_faces`, headless
 rendering in :mod:`tpscore.render` and the browser page of a result in
-:mod:`tpscore.viewer`; rigs of morph targets for animation tools in :mod:`tpscore.rig`
+:mod:`tpscore.viewer`; rigs of morph targets for animation tools in :mod:`tpscore.rigging`
 (``tpscore.rig(...)`` makes one).
 """
 from __future__ import annotations
@@ -80,8 +80,7 @@ from .rbf import RBF, RBF_KERNELS, TPS
 from .sparse import PatternCholesky, SparseCholesky
 from .spatial import ClosestPoints, KDTree, MeshSurface, RayHits, closest_point_on_mesh
 from . import batch  # after the methods it runs in batches
-from . import rig  # a package, callable: tpscore.rig(...) makes a rig
-from .rig import Rig, write_gltf
+from .rigging import Rig, rig, write_gltf
 
 
 __all__ = [

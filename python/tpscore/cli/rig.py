@@ -51,14 +51,14 @@ def add_rig_parser(sub) -> None:
 
 def rig_command(args) -> int:
     from ..expression import TransferOptions
-    from ..rig import rig, write_gltf
+    from ..rigging import rig, write_gltf
 
     suffix = Path(args.out).suffix.lower()
     if suffix not in _GLTF_SUFFIXES + _USD_SUFFIXES:
         raise ValueError(f"--out: {args.out!r}: a rig is written as .glb or .gltf (glTF 2.0), or .usda, .usdc "
                          "or .usd (USD)")
     if suffix in _USD_SUFFIXES:
-        from ..rig.usd import require_usd
+        from ..rigging.usd import require_usd
 
         require_usd()  # before the transfers, not after them
     if not Path(args.out).resolve().parent.is_dir():
@@ -69,7 +69,7 @@ def rig_command(args) -> int:
         made = rig(args.source_neutral, args.source_dir, args.target, action_units=args.au, names=args.names,
                    grid=grid_shape(args.grid), options=options, progress=progress)
         if suffix in _USD_SUFFIXES:
-            from ..rig.usd import write_usd
+            from ..rigging.usd import write_usd
 
             written = write_usd(args.out, made, animations=args.animations)
         else:

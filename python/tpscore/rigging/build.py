@@ -1,7 +1,7 @@
 """A rig: every expression of a source person transferred onto one target person, as
 the target's neutral face and one morph target per expression (or per half of one,
-with ARKit's names), for any animation tool to open (:mod:`tpscore.rig.gltf`,
-:mod:`tpscore.rig.usd`).
+with ARKit's names), for any animation tool to open (:mod:`tpscore.rigging.gltf`,
+:mod:`tpscore.rigging.usd`).
 
 The source's neutral scan and the target are read and resampled once; each expression
 is then one :func:`tpscore.transfer` on those grids.
@@ -27,7 +27,7 @@ __all__ = ["MorphTarget", "Rig", "rig"]
 class MorphTarget:
     """One morph target of a rig: its name, the expression it comes from, the part of
     that expression's displacement it carries (None: all of it; ``left``, ``right``,
-    ``upper``, ``lower``: see :func:`tpscore.rig.names.part_weights`), and that
+    ``upper``, ``lower``: see :func:`tpscore.rigging.names.part_weights`), and that
     displacement at weight 1, (n, 3) mm in the target scan's frame at the rig's vertices."""
 
     name: str
@@ -86,7 +86,7 @@ class Rig:
         """A rig of transfers onto one target: {expression name: TransferResult}, each
         at the magnitude its morph target has at weight 1. The names are expressions'
         as a transfer labels them (``AU12``, ``AU12L``, ``sadness``); the ARKit names are
-        read from them (:func:`tpscore.rig.names.plan_targets`).
+        read from them (:func:`tpscore.rigging.names.plan_targets`).
 
         Raises
         ------
@@ -173,7 +173,7 @@ def rig(source_neutral: Scan | None, expressions: Mapping[str, Scan] | str | os.
         "sadness": "sad.bnt"}`` (requests as :func:`tpscore.transfer` takes them); or
         the source person's folder: ``bsNNN_<CODE>.bnt`` (the Bosphorus layout) or
         ``source_<name>.bnt`` (as ``tpscore demo`` writes into ``scans/``; see
-        :mod:`tpscore.rig.sources`). A folder's scans of no AU or emotion the library
+        :mod:`tpscore.rigging.sources`). A folder's scans of no AU or emotion the library
         knows are left out.
     target : FaceGrid, str or path
         The target's neutral scan.
@@ -183,7 +183,7 @@ def rig(source_neutral: Scan | None, expressions: Mapping[str, Scan] | str | os.
     names : {"au", "arkit"}
         The morph targets' names: the expressions' (``AU12``, ``happiness``), or ARKit's
         blendshapes where one matches, a bilateral AU cut into its left and right
-        halves (:func:`tpscore.rig.names.plan_targets`; docs/rig.md has the table).
+        halves (:func:`tpscore.rigging.names.plan_targets`; docs/rig.md has the table).
     grid : (H, W)
         The grid every scan given as a path is resampled on.
     options, reference, library
@@ -194,7 +194,7 @@ def rig(source_neutral: Scan | None, expressions: Mapping[str, Scan] | str | os.
     Returns
     -------
     Rig
-        With the transfers in ``results``; write it with :func:`tpscore.rig.write_gltf`.
+        With the transfers in ``results``; write it with :func:`tpscore.rigging.write_gltf`.
 
     Raises
     ------
