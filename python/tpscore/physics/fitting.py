@@ -95,6 +95,12 @@ def carry_head(template: Head, deform, vertices=None) -> Head:
         raise ValueError(f"vertices must have the template's shape {template.vertices.shape}, got {vertices.shape}")
 
     skull = np.asarray(mapping(template.skull_vertices), dtype=np.float64)
+    if len(skull) == len(vertices):
+        # Each skull vertex lies under the skin vertex of its column. The fit's final
+        # snap moves the skin beyond the smooth map by up to a few millimetres; the
+        # skull follows it there, so the tissue between keeps the depth the smooth map
+        # gave it (a snap that crushed the chin's tissue to 2 mm made the skin chatter).
+        skull = skull + (vertices - np.asarray(mapping(template.vertices), dtype=np.float64))
     pivot = np.asarray(mapping(template.jaw_pivot[None]), dtype=np.float64)[0]
     fitted_landmarks = np.full((len(template.landmark_vertices), 3), np.nan)
     present = template.landmark_vertices >= 0
