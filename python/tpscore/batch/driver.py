@@ -223,9 +223,53 @@ def run(jobs, out, *, scheduler: str | None = None, client=None, workers: int | 
     ValueError
         Duplicate job names, a bad argument, `out` not a folder, `gt_faces` missing.
     """
-    from distributed import Client, as_completed
-
     start = time.perf_counter()
+    jobs, out, gt_faces = _checked_run(jobs, out, scheduler, client, workers, cache_scans, retries, max_in_flight,
+                                       gt_faces)
+    (out / RECORDS_FOLDER).mkdir(parents=True, exist_ok=True)
+    _remove_temporaries(out, STALE_TEMPORARY_S)
+
+    skipped, to_run = plan(jobs, out, resume=resume)
+    rows = {row["name"]: row for row in skipped}
+    meter = progress if isinstance(progress, Progress) else Progress(len(to_run), enabled=bool(progress))
+    report = BatchReport([], out)
+    own_cluster = own_client = None
+    try:
+        if to_run:
+            client, own_cluster, own_client = _connect(client, scheduler, workers)
+            report.startup_seconds = time.perf_counter() - start
+            threads = client.nthreads()
+            report.workers = len(threads)
+            meter.note(f"{len(skipped)} jobs done before, {len(to_run)} to run on "
+                       f"{'a local cluster' if own_cluster else client.scheduler.address} of {len(threads)} "
+                       f"worker(s), {sum(threads.values())} thread(s) (ready in {report.startup_seconds:.1f} s)")
+            settings = WorkSettings(str(out), gt_faces, bool(truth), cache_scans, _kernel_threads(client))
+            limit = max_in_flight or max(IN_FLIGHT_LEAST, 4 * sum(threads.values()))
+            report.interrupted = not _stream(client, to_run, settings, limit, retries, rows, meter,
+                                             lambda: write_table([rows.get(j.name) or _not_run_row(j) for j in jobs],
+                                                                 out / table))
+            meter.close()
+    finally:
+        if own_client is not None:
+            own_client.close()
+        if own_cluster is not None:
+            own_cluster.close()
+    if report.interrupted and own_cluster is not None:
+        # the local workers are gone: what they were writing is no output
+        _remove_temporaries(out, 0.0)
+    if report.interrupted:
+        # jobs that finished while the interrupt was handled have their records
+        late, _ = plan([job for job in jobs if job.name not in rows], out)
+        rows.update((row["name"], dict(row, status="done")) for row in late)
+    report.rows = [rows.get(job.name) or _not_run_row(job) for job in jobs]
+    report.seconds = time.perf_counter() - start
+    report.tables = write_table(report.rows, out / table)
+    return report
+
+
+def _checked_run(jobs, out, scheduler, client, workers, cache_scans, retries, max_in_flight, gt_faces):
+    """The run's arguments checked: the jobs as a list, the output folder and the
+    sidecars' faces as absolute paths."""
     jobs = list(jobs)
     bad = [type(j).__name__ for j in jobs if not isinstance(j, Job)]
     if bad:
@@ -247,87 +291,64 @@ def run(jobs, out, *, scheduler: str | None = None, client=None, workers: int | 
         gt_faces = os.path.abspath(gt_faces)
         if not os.path.isfile(gt_faces):
             raise ValueError(f"gt_faces: {gt_faces!r}: file not found")
-    (out / RECORDS_FOLDER).mkdir(parents=True, exist_ok=True)
-    _remove_temporaries(out, STALE_TEMPORARY_S)
+    return jobs, out, gt_faces
 
-    skipped, to_run = plan(jobs, out, resume=resume)
-    rows = {row["name"]: row for row in skipped}
-    meter = progress if isinstance(progress, Progress) else Progress(len(to_run), enabled=bool(progress))
-    report = BatchReport([], out)
 
-    def finish() -> BatchReport:
-        if report.interrupted:
-            # jobs that finished while the interrupt was handled have their records
-            late, _ = plan([job for job in jobs if job.name not in rows], out)
-            rows.update((row["name"], dict(row, status="done")) for row in late)
-        report.rows = [rows.get(job.name) or _not_run_row(job) for job in jobs]
-        report.seconds = time.perf_counter() - start
-        report.tables = write_table(report.rows, out / table)
-        return report
+def _connect(client, scheduler, workers):
+    """The client to run on: the caller's, one of a scheduler's, or one of a local
+    cluster started here. Returns (client, the cluster and the client to close)."""
+    from distributed import Client
 
-    if not to_run:
-        return finish()
+    if client is not None:
+        return client, None, None
+    if scheduler is not None:
+        client = Client(scheduler)
+        return client, None, client
+    cluster, client = local_cluster(workers or local_cores())
+    return client, cluster, client
 
-    own_cluster = own_client = None
+
+def _stream(client, to_run, settings, limit, retries, rows, meter, write_progress_table) -> bool:
+    """Submit the jobs, at most ``limit`` in flight, and record each row as its job
+    finishes (the table rewritten every TABLE_EVERY_S). Returns False when Ctrl-C
+    stopped it (the jobs in flight are then cancelled)."""
+    from distributed import as_completed
+
     in_flight: dict = {}
+    pending = iter(to_run)
+    # results come with the futures, fetched on the client's event loop as the futures
+    # finish, rather than one blocking round trip per job here
+    completed = as_completed(with_results=True, raise_errors=False)
+
+    def submit_next() -> None:
+        job = next(pending, None)
+        if job is not None:
+            future = client.submit(execute, job, settings, retries=retries, pure=False,
+                                   key=f"tpscore-batch-{job.name}-{job.spec_hash}")
+            in_flight[future.key] = (future, job)
+            completed.add(future)
+
     try:
-        try:
-            if client is None:
-                if scheduler is None:
-                    own_cluster, own_client = local_cluster(workers or local_cores())
-                    client = own_client
-                else:
-                    own_client = client = Client(scheduler)
-            report.startup_seconds = time.perf_counter() - start
-            threads = client.nthreads()
-            report.workers = len(threads)
-            meter.note(f"{len(skipped)} jobs done before, {len(to_run)} to run on "
-                       f"{'a local cluster' if own_cluster else client.scheduler.address} of {len(threads)} "
-                       f"worker(s), {sum(threads.values())} thread(s) (ready in {report.startup_seconds:.1f} s)")
-            settings = WorkSettings(str(out), gt_faces, bool(truth), cache_scans, _kernel_threads(client))
-            limit = max_in_flight or max(IN_FLIGHT_LEAST, 4 * sum(threads.values()))
-            meter.start = time.perf_counter()
-            pending = iter(to_run)
-            # results come with the futures, fetched on the client's event loop as the
-            # futures finish, rather than one blocking round trip per job here
-            completed = as_completed(with_results=True, raise_errors=False)
-
-            def submit_next() -> None:
-                job = next(pending, None)
-                if job is not None:
-                    future = client.submit(execute, job, settings, retries=retries, pure=False,
-                                           key=f"tpscore-batch-{job.name}-{job.spec_hash}")
-                    in_flight[future.key] = (future, job)
-                    completed.add(future)
-
-            for _ in range(limit):
-                submit_next()
-            written = time.perf_counter()
-            for future, result in completed:
-                _, job = in_flight.pop(future.key)
-                if future.status == "finished":
-                    row = result
-                else:  # the task raised (an error of the machine, retries spent; a worker died
-                    # each time it ran the job): the job's failure, not the batch's
-                    row = _failed_row(job, result[1] if isinstance(result, tuple) else result)
-                future.release()
-                rows[job.name] = row
-                meter.update(row["status"])
-                submit_next()
-                if time.perf_counter() - written > TABLE_EVERY_S:
-                    written = time.perf_counter()
-                    write_table([rows.get(j.name) or _not_run_row(j) for j in jobs], out / table)
-        except KeyboardInterrupt:
-            report.interrupted = True
-            if in_flight:
-                client.cancel([future for future, _ in in_flight.values()])
-        meter.close()
-    finally:
-        if own_client is not None:
-            own_client.close()
-        if own_cluster is not None:
-            own_cluster.close()
-    if report.interrupted and own_cluster is not None:
-        # the local workers are gone: what they were writing is no output
-        _remove_temporaries(out, 0.0)
-    return finish()
+        meter.start = time.perf_counter()
+        for _ in range(limit):
+            submit_next()
+        written = time.perf_counter()
+        for future, result in completed:
+            _, job = in_flight.pop(future.key)
+            if future.status == "finished":
+                row = result
+            else:  # the task raised (an error of the machine, retries spent; a worker died
+                # each time it ran the job): the job's failure, not the batch's
+                row = _failed_row(job, result[1] if isinstance(result, tuple) else result)
+            future.release()
+            rows[job.name] = row
+            meter.update(row["status"])
+            submit_next()
+            if time.perf_counter() - written > TABLE_EVERY_S:
+                written = time.perf_counter()
+                write_progress_table()
+    except KeyboardInterrupt:
+        if in_flight:
+            client.cancel([future for future, _ in in_flight.values()])
+        return False
+    return True
