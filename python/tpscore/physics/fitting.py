@@ -97,10 +97,13 @@ def carry_head(template: Head, deform, vertices=None) -> Head:
     skull = np.asarray(mapping(template.skull_vertices), dtype=np.float64)
     if len(skull) == len(vertices):
         # Each skull vertex lies under the skin vertex of its column. The fit's final
-        # snap moves the skin beyond the smooth map by up to a few millimetres; the
-        # skull follows it there, so the tissue between keeps the depth the smooth map
-        # gave it (a snap that crushed the chin's tissue to 2 mm made the skin chatter).
-        skull = skull + (vertices - np.asarray(mapping(template.vertices), dtype=np.float64))
+        # snap moves the skin beyond the smooth map by up to a few millimetres; where it
+        # moves the skin toward the skull, the skull follows, so the tissue keeps the
+        # depth the smooth map gave it (a snap that crushed the chin's tissue to 2 mm
+        # made the skin chatter); where it moves the skin out, the tissue thickens.
+        smooth = np.asarray(mapping(template.vertices), dtype=np.float64)
+        crushed = np.linalg.norm(vertices - skull, axis=1) < np.linalg.norm(smooth - skull, axis=1)
+        skull = skull + np.where(crushed[:, None], vertices - smooth, 0.0)
     pivot = np.asarray(mapping(template.jaw_pivot[None]), dtype=np.float64)[0]
     fitted_landmarks = np.full((len(template.landmark_vertices), 3), np.nan)
     present = template.landmark_vertices >= 0
