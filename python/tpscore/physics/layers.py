@@ -206,8 +206,65 @@ def _adjacency(n: int, edges: np.ndarray):
 def build_layers(head, material: SkinMaterial = SkinMaterial()) -> SkinLayers:
     """The three-layer particle system of a head (see the module notes)."""
     n = len(head.vertices)
-    skin = head.vertices
-    skull = head.skull_vertices
+    columns = _columns(head, material)
+    first, second, stiffness = _springs(head, columns, material)
+    rest_length = np.linalg.norm(columns.rest[second] - columns.rest[first], axis=1)
+    masses = columns.masses
+    reduced_mass = masses[first] * masses[second] / (masses[first] + masses[second])
+    damping = 2.0 * material.damping_ratio * np.sqrt(stiffness * reduced_mass)
+
+    anchor_particle = 2 * n + np.arange(n)
+    anchor_stiffness = KPA * material.anchor_modulus_kpa * columns.area / columns.anchor_t
+    anchor_damping = 2.0 * material.damping_ratio * np.sqrt(anchor_stiffness * masses[anchor_particle])
+    bones = np.where(head.mandible, MANDIBLE, SKULL).astype(np.int64)
+    hypodermis = columns.rest[2 * n:]
+
+    lips = head.region_mask([r for r in ("upper_lip", "lower_lip") if r in head.region_names])
+    own = np.zeros(3 * n)
+    np.add.at(own, first, stiffness)
+    np.add.at(own, second, stiffness)
+    np.add.at(own, anchor_particle, anchor_stiffness)
+    arrays = SkinArrays(
+        masses=masses, spring_first=first, spring_second=second, spring_rest=rest_length,
+        spring_stiffness=stiffness, spring_stiffness_high=stiffness * material.stiffening,
+        spring_knee=np.full(len(first), material.knee_strain), spring_damping=damping,
+        anchor_particle=anchor_particle, anchor_target=hypodermis.copy(), anchor_bone=bones,
+        anchor_stiffness=anchor_stiffness, anchor_damping=anchor_damping, drag=material.drag,
+        **_muscle_arrays(head, hypodermis),
+        **_skull_arrays(head, columns.edges, bones),
+        # Only the hypodermal layer meets the skull: it lies on it, and the layers above
+        # reach it only through an inverted column, which the simulation refuses. (A
+        # skin particle ~2 cm over the skull under the nose is also where a nearest-vertex
+        # search can settle on the far side of a bump and call it inside.) The lips rest
+        # on the teeth, which the model does not have, not on bone: their free margins
+        # slide about the cut as the jaw opens, and meeting the cut's edge there made
+        # them chatter.
+        particle_foot=np.concatenate([np.full(2 * n, -1), np.where(lips, -1, np.arange(n))]),
+        contact_stiffness=material.contact_stiffness * own,
+        contact_damping=2.0 * material.damping_ratio * np.sqrt(material.contact_stiffness * own * masses),
+        contact_margin=material.contact_margin_mm,
+        jaw_pivot=head.jaw_pivot, jaw_axis=head.jaw_axis,
+    )
+    arrays = _with_contact_margins(arrays, columns.rest, material)
+    return SkinLayers(rest=columns.rest, vertices=n, arrays=arrays, muscle_names=head.muscle_names)
+
+
+@dataclass(frozen=True)
+class _Columns:
+    """The layers' particles at rest along each skin vertex's column to its skull
+    vertex, with what the springs and masses are made of."""
+
+    rest: np.ndarray       # (3n, 3): epidermis, dermis, hypodermis
+    edges: np.ndarray      # (e, 2) the skin's edges
+    area: np.ndarray       # (n,) each vertex's Voronoi area
+    dermal_t: np.ndarray   # (n,) thicknesses of the layers (mm)
+    hypo_t: np.ndarray
+    anchor_t: np.ndarray
+    masses: np.ndarray     # (3n,)
+
+
+def _columns(head, material: SkinMaterial) -> _Columns:
+    skin, skull = head.vertices, head.skull_vertices
     depth = np.linalg.norm(skull - skin, axis=1)
     if np.any(depth <= 0.1):
         bad = np.flatnonzero(depth <= 0.1)[0]
@@ -216,9 +273,7 @@ def build_layers(head, material: SkinMaterial = SkinMaterial()) -> SkinLayers:
     toward = (skull - skin) / depth[:, None]
     fractions = (0.0, material.dermal_depth, material.hypodermal_depth)
     rest = np.concatenate([skin + f * depth[:, None] * toward for f in fractions])
-    faces = head.faces
-    edges = _edges(faces)
-    area = voronoi_areas(skin, faces)
+    area = voronoi_areas(skin, head.faces)
     area = np.maximum(area, 1e-6 * max(area.max(), 1e-12))
     dermal_t = material.dermal_depth * depth
     hypo_t = (material.hypodermal_depth - material.dermal_depth) * depth
@@ -227,7 +282,15 @@ def build_layers(head, material: SkinMaterial = SkinMaterial()) -> SkinLayers:
     masses = np.concatenate([rho * area * (material.skin_thickness_mm + 0.5 * dermal_t),
                              rho * area * 0.5 * (dermal_t + hypo_t),
                              rho * area * (0.5 * hypo_t + anchor_t)])
+    return _Columns(rest, _edges(head.faces), area, dermal_t, hypo_t, anchor_t, masses)
 
+
+def _springs(head, columns: _Columns, material: SkinMaterial):
+    """Every spring (first, second particle, stiffness): each layer's membrane along the
+    skin's edges, flexion across them, and columns and shear between the layers."""
+    n = len(head.vertices)
+    skin, faces, edges, rest = head.vertices, head.faces, columns.edges, columns.rest
+    dermal_t, hypo_t, area = columns.dermal_t, columns.hypo_t, columns.area
     first, second, stiffness = [], [], []
     edge_area = _edge_areas(skin, faces, edges)
     a, b = edges[:, 0], edges[:, 1]
@@ -279,27 +342,21 @@ def build_layers(head, material: SkinMaterial = SkinMaterial()) -> SkinLayers:
             first.append(top + upper)
             second.append(bottom + lower)
             stiffness.append(k)
-    first = np.concatenate(first).astype(np.int64)
-    second = np.concatenate(second).astype(np.int64)
-    stiffness = np.concatenate(stiffness)
-    rest_length = np.linalg.norm(rest[second] - rest[first], axis=1)
-    reduced_mass = masses[first] * masses[second] / (masses[first] + masses[second])
-    damping = 2.0 * material.damping_ratio * np.sqrt(stiffness * reduced_mass)
+    return (np.concatenate(first).astype(np.int64), np.concatenate(second).astype(np.int64),
+            np.concatenate(stiffness))
 
-    anchor_particle = 2 * n + np.arange(n)
-    anchor_stiffness = KPA * material.anchor_modulus_kpa * area / anchor_t
-    anchor_damping = 2.0 * material.damping_ratio * np.sqrt(anchor_stiffness * masses[anchor_particle])
-    bones = np.where(head.mandible, MANDIBLE, SKULL).astype(np.int64)
 
-    # muscles: weights over the hypodermal particles of their regions
-    hypodermis = rest[2 * n:]
+def _muscle_arrays(head, hypodermis: np.ndarray) -> dict:
+    """The muscles' fields of SkinArrays: each muscle's weights over the hypodermal
+    particles of its regions."""
+    n = len(head.vertices)
     kinds, muscle_bones, points, axes, forces = [], [], [], [], []
     indptr, particles, weights = [0], [], []
     for muscle in head.muscles:
         allowed = head.region_mask(muscle.regions)
         if isinstance(muscle, SkinLinearMuscle):
-            attachment = muscle.attachment.position(skull, faces)
-            insertion = muscle.insertion.position(hypodermis, faces)
+            attachment = muscle.attachment.position(head.skull_vertices, head.faces)
+            insertion = muscle.insertion.position(hypodermis, head.faces)
             index, weight = muscle_weights(muscle, hypodermis, allowed, attachment=attachment, insertion=insertion)
             kinds.append(LINEAR)
             points.append(attachment)
@@ -315,56 +372,42 @@ def build_layers(head, material: SkinMaterial = SkinMaterial()) -> SkinLayers:
         particles.append(2 * n + index)
         weights.append(weight)
         indptr.append(indptr[-1] + len(index))
-
-    lips = head.region_mask([r for r in ("upper_lip", "lower_lip") if r in head.region_names])
-    own = np.zeros(3 * n)
-    np.add.at(own, first, stiffness)
-    np.add.at(own, second, stiffness)
-    np.add.at(own, anchor_particle, anchor_stiffness)
-    skull_normals = vertex_normals(skull, faces)
-    indptr_skull, neighbours = _adjacency(n, edges)
-    face_indptr, vertex_faces = _two_ring_faces(faces, n, indptr_skull, neighbours)
-    arrays = SkinArrays(
-        masses=masses, spring_first=first, spring_second=second, spring_rest=rest_length,
-        spring_stiffness=stiffness, spring_stiffness_high=stiffness * material.stiffening,
-        spring_knee=np.full(len(first), material.knee_strain), spring_damping=damping,
-        anchor_particle=anchor_particle, anchor_target=hypodermis.copy(), anchor_bone=bones,
-        anchor_stiffness=anchor_stiffness, anchor_damping=anchor_damping, drag=material.drag,
+    return dict(
         muscle_kind=np.array(kinds, dtype=np.int64), muscle_bone=np.array(muscle_bones, dtype=np.int64),
         muscle_point=np.array(points, dtype=np.float64).reshape(-1, 3),
         muscle_axes=np.array(axes, dtype=np.float64).reshape(-1, 6),
         muscle_max_force=np.array(forces, dtype=np.float64),
         muscle_indptr=np.array(indptr, dtype=np.int64),
         muscle_particles=np.concatenate(particles).astype(np.int64) if particles else np.zeros(0, dtype=np.int64),
-        muscle_weights=np.concatenate(weights) if weights else np.zeros(0),
-        skull_vertices=skull, skull_normals=skull_normals, skull_faces=faces,
-        skull_face_indptr=face_indptr, skull_vertex_faces=vertex_faces, skull_face_rim=rim_edges(faces, n, bones),
-        skull_bone=bones,
-        skull_indptr=indptr_skull, skull_neighbours=neighbours,
-        # Only the hypodermal layer meets the skull: it lies on it, and the layers above
-        # reach it only through an inverted column, which the simulation refuses. (A
-        # skin particle ~2 cm over the skull under the nose is also where a nearest-vertex
-        # search can settle on the far side of a bump and call it inside.) The lips rest
-        # on the teeth, which the model does not have, not on bone: their free margins
-        # slide about the cut as the jaw opens, and meeting the cut's edge there made
-        # them chatter.
-        particle_foot=np.concatenate([np.full(2 * n, -1), np.where(lips, -1, np.arange(n))]),
-        contact_stiffness=material.contact_stiffness * own,
-        contact_damping=2.0 * material.damping_ratio * np.sqrt(material.contact_stiffness * own * masses),
-        contact_margin=material.contact_margin_mm,
-        jaw_pivot=head.jaw_pivot, jaw_axis=head.jaw_axis,
-    )
-    # The penalty must not push any particle at rest: where a particle rests closer to
-    # the skull than the margin (thin tissue, or a skull surface oblique to the column),
-    # its zone starts at half its rest height.
-    # Heights are taken from each particle's nearest skull vertex, where the contact
-    # search starts (a column's own skull vertex is not always the nearest: the rays
-    # toward the head's centre are oblique to the skull at the sides): a compiled system
-    # of the arrays so far walks each foot there and measures the heights.
+        muscle_weights=np.concatenate(weights) if weights else np.zeros(0))
+
+
+def _skull_arrays(head, edges: np.ndarray, bones: np.ndarray) -> dict:
+    """The skull's fields of SkinArrays: its surface (the skin's triangles over the
+    skull vertices), normals, rim and the adjacency the contact search walks."""
+    n, skull, faces = len(head.vertices), head.skull_vertices, head.faces
+    indptr_skull, neighbours = _adjacency(n, edges)
+    face_indptr, vertex_faces = _two_ring_faces(faces, n, indptr_skull, neighbours)
+    return dict(skull_vertices=skull, skull_normals=vertex_normals(skull, faces), skull_faces=faces,
+                skull_face_indptr=face_indptr, skull_vertex_faces=vertex_faces,
+                skull_face_rim=rim_edges(faces, n, bones), skull_bone=bones,
+                skull_indptr=indptr_skull, skull_neighbours=neighbours)
+
+
+def _with_contact_margins(arrays: SkinArrays, rest: np.ndarray, material: SkinMaterial) -> SkinArrays:
+    """The arrays with each particle's contact foot and margin at rest.
+
+    The penalty must not push any particle at rest: where a particle rests closer to
+    the skull than the margin (thin tissue, or a skull surface oblique to the column),
+    its zone starts at half its rest height. Heights are taken from each particle's
+    nearest skull vertex, where the contact search starts (a column's own skull vertex
+    is not always the nearest: the rays toward the head's centre are oblique to the
+    skull at the sides): a compiled system of the arrays so far walks each foot there
+    and measures the heights.
+    """
     checked = arrays.validated()
     system = checked.core()
     foot = system.project_contacts(rest, np.zeros_like(rest), checked.particle_foot, 0.0)[2]
     height = system.skull_heights(rest, foot, 0.0)
     margin = np.clip(np.minimum(material.contact_margin_mm, 0.5 * height), 0.0, None)
-    arrays = replace(arrays, particle_foot=foot, contact_margin=margin).validated()
-    return SkinLayers(rest=rest, vertices=n, arrays=arrays, muscle_names=head.muscle_names)
+    return replace(arrays, particle_foot=foot, contact_margin=margin).validated()
