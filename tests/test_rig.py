@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io as stdio
 import json
+import re
 import struct
 
 import numpy as np
@@ -296,8 +297,9 @@ def test_the_command_line_names_the_option(scans, tmp_path, capsys, arguments, w
 def test_tpscore_rig_writes_an_arkit_glb(scans, tmp_path, capsys):
     out = tmp_path / "rig.glb"
     code = main(["rig", "--source-dir", str(scans), "--target", str(scans / "target_neutral.bnt"), "--out", str(out),
-                 "--au", "4", "--names", "arkit", "--animations", "--grid", "80x80"])
+                 "--au", "4", "--names", "arkit", "--animations", "--grid", "80x80", "--html", str(tmp_path / "rig.html")])
     assert code == 0
+    assert '"targets": ["browDownLeft", "browDownRight"]' in (tmp_path / "rig.html").read_text()
     printed = capsys.readouterr().out
     assert "AU4 (1/1): transferred" in printed and f"wrote {out}" in printed
     gltf = pygltflib.GLTF2().load(str(out))
@@ -366,3 +368,34 @@ def test_blender_opens_the_rig_with_a_shape_key_per_morph_target(made, glb, blen
     moved = (seen["moved"] - basis)[order]
     assert np.abs(moved - in_blender(arkit_rig.displacement("mouthSmileLeft"))).max() * 1000 < \
         DISPLACEMENT_TOLERANCE_MM
+
+
+def test_the_rig_page_has_a_slider_per_target_that_moves_the_face(made, tmp_path, chromium):
+    pytest.importorskip("websocket", reason="the browser test talks to Chromium with websocket-client")
+    from headless_browser import Browser
+
+    made, _ = made
+    path = tmp_path / "rig.html"
+    made.write_html(path)
+    text = path.read_text()
+    assert "data:image/png;base64," in text and not re.search(r"https?://", text)
+    browser = Browser(chromium)
+    try:
+        browser.open(path)
+        browser.wait_for("window.tpscoreViewer && window.tpscoreViewer.ready")
+        sliders = browser.evaluate("document.querySelectorAll('#targets input[type=range]').length")
+        assert sliders == len(made.targets)
+        labels = browser.evaluate("Array.from(document.querySelectorAll('#targets label')).map(l => l.textContent)")
+        assert labels == made.target_names
+        neutral = browser.screenshot("#face")
+        frames = browser.evaluate("window.tpscoreViewer.frames")
+        weights = [0.0] * len(made.targets)
+        weights[made.target_names.index("surprise")] = 1.0
+        browser.evaluate(f"window.tpscoreViewer.setWeights({weights})")
+        browser.wait_for(f"window.tpscoreViewer.frames > {frames}")
+        opened = browser.screenshot("#face")
+        changed = (np.abs(opened.astype(int) - neutral.astype(int)).sum(axis=2) > 30)
+        assert changed.mean() > 0.01  # the surprise's slider moved the face
+        assert browser.errors() == []
+    finally:
+        browser.close()

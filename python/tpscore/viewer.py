@@ -27,7 +27,7 @@ from .face.image import as_colour_image
 from ._files import atomic_write
 from .mesh import vertex_normals
 
-__all__ = ["page_html", "write_html", "write_result_html"]
+__all__ = ["page_html", "write_html", "write_result_html", "rig_page_html", "write_rig_html"]
 
 # The page's typed arrays are read straight out of one buffer, and a Float32Array must
 # start at a multiple of 4 bytes.
@@ -102,16 +102,64 @@ def page_html(neutral, field, faces, *, uv=None, image=None, title: str = "tpsco
     if not (np.isfinite(magnitude) and 0 <= magnitude <= max_magnitude):
         raise ValueError(f"magnitude must lie in [0, max_magnitude = {max_magnitude:g}], got {magnitude!r}")
 
-    centre = (neutral.min(axis=0) + neutral.max(axis=0)) / 2
     moved = neutral + field
-    radius = float(max(np.linalg.norm(neutral - centre, axis=1).max(),
-                       np.linalg.norm(moved - centre, axis=1).max(), 1.0))
     arrays = {
         "neutral": neutral.astype(np.float32),
         "field": field.astype(np.float32),
         "normal_neutral": _unit_normals_int8(neutral, faces),
         "normal_moved": _unit_normals_int8(moved, faces),
     }
+    return _page(arrays, neutral, [moved], faces, uv, image, title=title, subtitle=subtitle,
+                 slider_label=slider_label, magnitude=magnitude, max_magnitude=max_magnitude)
+
+
+def rig_page_html(neutral, targets, faces, *, uv=None, image=None, title: str = "tpscore rig",
+                  subtitle: str = "") -> str:
+    """The HTML text of a rig's page: the neutral face with a slider per morph target
+    (the face drawn is the neutral plus each target's displacement times its slider)
+    and one that scales them all.
+
+    Parameters
+    ----------
+    neutral : (n, 3) array_like, mm
+    targets : sequence of (name, (n, 3) displacement in mm)
+    faces, uv, image, title, subtitle
+        As for :func:`page_html`.
+    """
+    neutral = as_points(neutral, "neutral")
+    faces = as_faces(faces, len(neutral), "faces")
+    targets = list(targets)
+    if not targets:
+        raise ValueError("targets is empty: a rig's page needs at least one morph target")
+    arrays = {"neutral": neutral.astype(np.float32), "normal_neutral": _unit_normals_int8(neutral, faces)}
+    names, moved = [], []
+    for k, entry in enumerate(targets):
+        if not (isinstance(entry, tuple) and len(entry) == 2 and isinstance(entry[0], str)):
+            raise ValueError(f"targets[{k}] must be a (name, displacement) pair, got {type(entry).__name__}")
+        name, displacement = entry
+        displacement = as_points(displacement, f"targets[{k}] ({name})")
+        if displacement.shape != neutral.shape:
+            raise ValueError(f"targets[{k}] ({name}) must have the shape of neutral {neutral.shape}, "
+                             f"got {displacement.shape}")
+        names.append(name)
+        moved.append(neutral + displacement)
+        arrays[f"field_{k}"] = displacement.astype(np.float32)
+        arrays[f"normal_{k}"] = _unit_normals_int8(moved[-1], faces)
+    return _page(arrays, neutral, moved, faces, uv, image, title=title, subtitle=subtitle,
+                 slider_label="all targets", magnitude=1.0, max_magnitude=1.0, targets=names)
+
+
+def _page(arrays: dict, neutral, moved: list, faces, uv, image, *, title, subtitle, slider_label, magnitude,
+          max_magnitude, targets=None) -> str:
+    """The page of checked arrays: the texture, the indices, the view's centre and
+    radius (the neutral and every moved face inside it) and the template filled in."""
+    if (uv is None) != (image is None):
+        raise ValueError("uv and image go together: give both or neither")
+    if len(faces) == 0:
+        raise ValueError("faces is empty: a page needs triangles to draw")
+    centre = (neutral.min(axis=0) + neutral.max(axis=0)) / 2
+    radius = float(max([np.linalg.norm(neutral - centre, axis=1).max(), 1.0]
+                       + [np.linalg.norm(face - centre, axis=1).max() for face in moved]))
     texture = None
     if image is not None:
         uv = as_points(uv, "uv", dim=2)
@@ -126,6 +174,8 @@ def page_html(neutral, field, faces, *, uv=None, image=None, title: str = "tpsco
     buffer, layout = _pack(arrays)
     data = {"buffer": buffer, "layout": layout, "texture": texture,
             "centre": [float(v) for v in centre], "radius": radius}
+    if targets is not None:
+        data["targets"] = list(targets)
     # "</" would end the <script> element that holds the JSON
     data_text = json.dumps(data).replace("</", "<\\/")
 
@@ -186,3 +236,10 @@ def write_result_html(path, result, *, title: str | None = None) -> None:
                image=grid.image if textured else None, title=page_title,
                subtitle=subtitle + "; the slider moves the face on the GPU", magnitude=min(max(start, 0.0), end),
                max_magnitude=end, slider_label=label)
+
+
+def write_rig_html(path, neutral, targets, faces, **kwargs) -> None:
+    """Write :func:`rig_page_html` to `path` (atomically); keyword arguments as there."""
+    if Path(path).suffix.lower() not in (".html", ".htm"):
+        raise ValueError(f"{str(path)!r}: a rig's page is an .html file")
+    atomic_write(path, rig_page_html(neutral, targets, faces, **kwargs).encode("utf-8"))

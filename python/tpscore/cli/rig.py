@@ -44,6 +44,7 @@ def add_rig_parser(sub) -> None:
                         "bilateral AUs cut into left and right halves)")
     p.add_argument("--animations", action="store_true",
                    help="add one animation per expression (0 -> 1 -> 0 over a second)")
+    p.add_argument("--html", metavar="PAGE", help="also write a page of the rig: a slider per morph target")
     p.add_argument("--method", choices=["default", "published"], default="default")
     p.add_argument("--grid", default="150x150", help="grid size HxW (default 150x150)")
     p.add_argument("--quiet", action="store_true")
@@ -61,6 +62,8 @@ def rig_command(args) -> int:
         from ..rigging.usd import require_usd
 
         require_usd()  # before the transfers, not after them
+    if args.html and Path(args.html).suffix.lower() not in (".html", ".htm"):
+        raise ValueError(f"--html: {args.html!r}: a rig's page is an .html file")
     if not Path(args.out).resolve().parent.is_dir():
         raise ValueError(f"--out: {args.out!r}: the folder {str(Path(args.out).parent)!r} does not exist")
     progress = StepLog(args.quiet)
@@ -74,10 +77,12 @@ def rig_command(args) -> int:
             written = write_usd(args.out, made, animations=args.animations)
         else:
             written = write_gltf(args.out, made, animations=args.animations)
+        if args.html:
+            made.write_html(args.html)
     except ValueError as exc:
         raise _as_option(exc) from None
     progress(f"wrote {written} ({Path(written).stat().st_size / 2**20:.1f} MiB): "
-             f"{', '.join(made.target_names)}")
+             f"{', '.join(made.target_names)}" + (f"; {args.html}" if args.html else ""))
     return 0
 
 

@@ -112,19 +112,33 @@
   }
   gl.useProgram(program);
 
-  function attribute(name, array, size, type, normalized) {
+  function attribute(name, array, size, type, normalized, usage) {
     var location = gl.getAttribLocation(program, name);
     var handle = gl.createBuffer();
     gl.bindBuffer(gl.ARRAY_BUFFER, handle);
-    gl.bufferData(gl.ARRAY_BUFFER, array, gl.STATIC_DRAW);
+    gl.bufferData(gl.ARRAY_BUFFER, array, usage || gl.STATIC_DRAW);
     gl.enableVertexAttribArray(location);
     gl.vertexAttribPointer(location, size, type, normalized, 0, 0);
+    return handle;
   }
 
   attribute("aNeutral", view("neutral"), 3, gl.FLOAT, false);
-  attribute("aField", view("field"), 3, gl.FLOAT, false);
   attribute("aNormalNeutral", view("normal_neutral"), 3, gl.BYTE, true);
-  attribute("aNormalMoved", view("normal_moved"), 3, gl.BYTE, true);
+  // A rig's page holds one field per morph target, each with its slider: the field
+  // drawn is their sum weighted by the sliders (a few hundred thousand multiply-adds,
+  // done here when a slider moves), and the moved normals likewise; the main slider
+  // scales it all.
+  var targets = data.targets || [];
+  var fieldBuffer, normalBuffer, combinedField, combinedNormal;
+  if (targets.length) {
+    combinedField = new Float32Array(view("neutral").length);
+    combinedNormal = new Float32Array(combinedField.length);
+    fieldBuffer = attribute("aField", combinedField, 3, gl.FLOAT, false, gl.DYNAMIC_DRAW);
+    normalBuffer = attribute("aNormalMoved", combinedNormal, 3, gl.FLOAT, false, gl.DYNAMIC_DRAW);
+  } else {
+    attribute("aField", view("field"), 3, gl.FLOAT, false);
+    attribute("aNormalMoved", view("normal_moved"), 3, gl.BYTE, true);
+  }
   attribute("aUv", view("uv"), 2, gl.UNSIGNED_SHORT, true);
   var indices = view("indices");
   gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, gl.createBuffer());
@@ -187,6 +201,66 @@
     redraw();
   }
 
+  // ------------------------------------------------------------------ a rig's targets
+
+  state.weights = targets.map(function () { return 0; });
+  var neutralNormal = targets.length ? view("normal_neutral") : null;
+
+  function combine() {
+    var count = combinedField.length;
+    for (var i = 0; i < count; i++) {
+      combinedField[i] = 0;
+      combinedNormal[i] = neutralNormal[i] / 127;
+    }
+    targets.forEach(function (name, k) {
+      var weight = state.weights[k];
+      if (weight === 0) {
+        return;
+      }
+      var field = view("field_" + k), normal = view("normal_" + k);
+      for (var i = 0; i < count; i++) {
+        combinedField[i] += weight * field[i];
+        combinedNormal[i] += weight * (normal[i] - neutralNormal[i]) / 127;
+      }
+    });
+    gl.bindBuffer(gl.ARRAY_BUFFER, fieldBuffer);
+    gl.bufferSubData(gl.ARRAY_BUFFER, 0, combinedField);
+    gl.bindBuffer(gl.ARRAY_BUFFER, normalBuffer);
+    gl.bufferSubData(gl.ARRAY_BUFFER, 0, combinedNormal);
+    redraw();
+  }
+
+  targets.forEach(function (name, k) {
+    var box = document.getElementById("targets");
+    var label = document.createElement("label");
+    var input = document.createElement("input");
+    var output = document.createElement("output");
+    input.type = "range";
+    input.min = "0";
+    input.max = "1";
+    input.step = "0.01";
+    input.value = "0";
+    input.id = "target-" + k;
+    label.htmlFor = input.id;
+    label.textContent = name;
+    output.textContent = "0.00";
+    input.addEventListener("input", function () {
+      state.weights[k] = parseFloat(input.value);
+      output.textContent = state.weights[k].toFixed(2);
+      combine();
+    });
+    box.appendChild(label);
+    box.appendChild(input);
+    box.appendChild(output);
+  });
+  state.setWeights = function (weights) {  // for scripts driving the page
+    weights.forEach(function (value, k) {
+      state.weights[k] = value;
+      document.getElementById("target-" + k).value = String(value);
+    });
+    combine();
+  };
+
   slider.addEventListener("input", function () {
     play.checked = false;
     setMagnitude(parseFloat(slider.value));
@@ -239,6 +313,9 @@
   window.addEventListener("resize", redraw);
 
   function start() {
+    if (targets.length) {
+      combine();
+    }
     setMagnitude(parseFloat(slider.value));
     window.requestAnimationFrame(function () {
       state.ready = true;
