@@ -6,22 +6,12 @@
 #include <numeric>
 
 #include "tpscore/kdtree.hpp"  // parallel_rows
+#include "tpscore/simd.hpp"
 
 // The closest-point traversal is compiled for AVX-512, AVX2 and the baseline and
-// picked at load time (one binary for every x86-64 CPU, no -march=native): its leaf
-// test is a loop over a leaf's triangles that the compiler vectorises.
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
-#define TPSCORE_SIMD_CLONES \
-    __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
-#else
-#define TPSCORE_SIMD_CLONES
-#endif
-// Inlined into the cloned traversal, so they take its instruction set.
-#if defined(__GNUC__)
-#define TPSCORE_INLINE inline __attribute__((always_inline))
-#else
-#define TPSCORE_INLINE inline
-#endif
+// picked at load time (TPSCORE_SIMD_CLONES): its leaf test is a loop over a leaf's
+// triangles that the compiler vectorises; the helpers are inlined into the cloned
+// traversal (TPSCORE_INLINE), so they take its instruction set.
 
 namespace tpscore {
 

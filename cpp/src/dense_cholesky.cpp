@@ -15,22 +15,13 @@
 // at load time. The templates are always inlined into those functions, so their
 // code takes the functions' instruction set; nothing compiled for a wider set is
 // shared with (or can be picked by the linker for) the baseline path.
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
-#define TPSCORE_CHOLESKY_DISPATCH 1
-#define TPSCORE_TARGET_V4 __attribute__((target("arch=x86-64-v4")))
-#define TPSCORE_TARGET_V3 __attribute__((target("arch=x86-64-v3")))
-#else
-#define TPSCORE_CHOLESKY_DISPATCH 0
-#endif
+#define TPSCORE_CHOLESKY_DISPATCH TPSCORE_MULTI_TARGET
 
 #if defined(__GNUC__)
-#define TPSCORE_INLINE inline __attribute__((always_inline))
 // GCC warns that passing the 32- and 64-byte vector types between functions built
 // without AVX would change the ABI; every function that handles them is inlined
 // into one built with the matching instruction set, so no such call exists.
 #pragma GCC diagnostic ignored "-Wpsabi"
-#else
-#define TPSCORE_INLINE inline
 #endif
 
 namespace tpscore {

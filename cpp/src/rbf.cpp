@@ -29,22 +29,13 @@ extern "C" {
 double log(double) noexcept __attribute__((simd("notinbranch")));
 double exp(double) noexcept __attribute__((simd("notinbranch")));
 }
-// One binary for every x86-64 CPU, the best loop picked at load time (ifunc):
-// no -march=native. Measured above; x86-64-v3 brings AVX2 + FMA, v4 AVX-512.
-#define TPSCORE_SIMD_CLONES \
-    __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
-// The tps evaluation has a hand-written AVX-512 loop besides (see accumulate_tps_avx512).
-#define TPSCORE_AVX512_TPS 1
+// The loops are cloned per instruction set (TPSCORE_SIMD_CLONES, measured above:
+// x86-64-v3 brings AVX2 + FMA, v4 AVX-512); the tps evaluation has a hand-written
+// AVX-512 loop besides (see accumulate_tps_avx512).
+#define TPSCORE_AVX512_TPS TPSCORE_MULTI_TARGET
 #include <immintrin.h>
 #else
-#define TPSCORE_SIMD_CLONES
 #define TPSCORE_AVX512_TPS 0
-#endif
-
-#if defined(__GNUC__)
-#define TPSCORE_ALWAYS_INLINE inline __attribute__((always_inline))
-#else
-#define TPSCORE_ALWAYS_INLINE inline
 #endif
 
 namespace tpscore {
@@ -60,7 +51,7 @@ constexpr std::int64_t kBlock = 64;
 
 // phi as a function of the squared distance d2 and e2 = epsilon^2 (same units).
 template <RbfKernel Kernel>
-TPSCORE_ALWAYS_INLINE double phi_of_d2(double d2, double e2) {
+TPSCORE_INLINE double phi_of_d2(double d2, double e2) {
     if constexpr (Kernel == RbfKernel::tps) {
         // U(0) = 0 without a comparison: 0 * log(DBL_MIN) = 0, and adding DBL_MIN
         // changes no d2 above 1e-290 mm^2. A `d2 > 0 ? ... : 0` select is a
@@ -82,7 +73,7 @@ TPSCORE_ALWAYS_INLINE double phi_of_d2(double d2, double e2) {
 // Kdim > 0 fuses phi and the accumulation (k = 1, 2, 3 are the common cases);
 // Kdim == 0 handles any k through a block of phi values.
 template <RbfKernel Kernel, int Kdim>
-TPSCORE_ALWAYS_INLINE void accumulate_block_impl(double e2, const double* __restrict qx,
+TPSCORE_INLINE void accumulate_block_impl(double e2, const double* __restrict qx,
                                                  const double* __restrict qy,
                                                  const double* __restrict qz, const double* cx,
                                                  const double* cy, const double* cz,
@@ -117,7 +108,7 @@ TPSCORE_ALWAYS_INLINE void accumulate_block_impl(double e2, const double* __rest
 }
 
 template <RbfKernel Kernel>
-TPSCORE_ALWAYS_INLINE void accumulate_block_k(double e2, const double* qx, const double* qy,
+TPSCORE_INLINE void accumulate_block_k(double e2, const double* qx, const double* qy,
                                               const double* qz, const double* cx,
                                               const double* cy, const double* cz,
                                               std::int64_t n, const double* weights,
@@ -183,12 +174,12 @@ struct LogConstants {
     __m512d reciprocal_low, reciprocal_high, minus_log_low, minus_log_high;
 };
 
-__attribute__((target("arch=x86-64-v4"))) TPSCORE_ALWAYS_INLINE LogConstants log_constants() {
+TPSCORE_TARGET_V4 TPSCORE_INLINE LogConstants log_constants() {
     return {_mm512_load_pd(log_table.reciprocal), _mm512_load_pd(log_table.reciprocal + 8),
             _mm512_load_pd(log_table.minus_log), _mm512_load_pd(log_table.minus_log + 8)};
 }
 
-__attribute__((target("arch=x86-64-v4"))) TPSCORE_ALWAYS_INLINE __m512d log_avx512(__m512d x,
+TPSCORE_TARGET_V4 TPSCORE_INLINE __m512d log_avx512(__m512d x,
                                                                                    const LogConstants& t) {
     const __m512d one = _mm512_set1_pd(1.0);
     const __m512d m = _mm512_getmant_pd(x, _MM_MANT_NORM_1_2, _MM_MANT_SIGN_src);
@@ -216,7 +207,7 @@ __attribute__((target("arch=x86-64-v4"))) TPSCORE_ALWAYS_INLINE __m512d log_avx5
 // accumulate_block_impl does, with the sums held in registers: 16 queries (two
 // vectors) at a time meet every centre.
 template <int Kdim>
-__attribute__((target("arch=x86-64-v4"))) void accumulate_tps_avx512(const double* qx, const double* qy,
+TPSCORE_TARGET_V4 void accumulate_tps_avx512(const double* qx, const double* qy,
                                                                      const double* qz, const double* cx,
                                                                      const double* cy, const double* cz,
                                                                      std::int64_t n, const double* weights,
@@ -279,7 +270,7 @@ void accumulate(RbfKernel kernel, double e2, const double* qx, const double* qy,
 }
 
 template <RbfKernel Kernel>
-TPSCORE_ALWAYS_INLINE void phi_row_impl(double e2, double x, double y, double z,
+TPSCORE_INLINE void phi_row_impl(double e2, double x, double y, double z,
                                         const double* cx, const double* cy, const double* cz,
                                         std::int64_t n, double* __restrict out) {
 #pragma omp simd

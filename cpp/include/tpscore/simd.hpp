@@ -7,6 +7,30 @@
 // dynamic loader, and are not affected by the override below.
 #pragma once
 
+// The compiler's means of building one loop for several instruction sets, in one place.
+//
+// TPSCORE_SIMD_CLONES: the function is compiled for AVX-512 (x86-64-v4), AVX2 + FMA
+// (x86-64-v3) and the baseline, and the dynamic loader picks one from the CPU (GCC's
+// target_clones: one binary for every x86-64 CPU, no -march=native).
+// TPSCORE_TARGET_V4 / _V3: one function compiled for one level, for kernels that
+// dispatch by hand (simd_level below). TPSCORE_INLINE: always inlined, so that a
+// helper takes the instruction set of the function it is inlined into.
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
+#define TPSCORE_MULTI_TARGET 1
+#define TPSCORE_SIMD_CLONES __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+#define TPSCORE_TARGET_V4 __attribute__((target("arch=x86-64-v4")))
+#define TPSCORE_TARGET_V3 __attribute__((target("arch=x86-64-v3")))
+#else
+#define TPSCORE_MULTI_TARGET 0
+#define TPSCORE_SIMD_CLONES
+#endif
+
+#if defined(__GNUC__)
+#define TPSCORE_INLINE inline __attribute__((always_inline))
+#else
+#define TPSCORE_INLINE inline
+#endif
+
 namespace tpscore {
 
 enum class SimdLevel : int { baseline = 0, avx2 = 1, avx512 = 2 };
