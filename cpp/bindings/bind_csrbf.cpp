@@ -14,17 +14,21 @@ void bind_csrbf(nb::module_& m) {
     using tpscore::MatrixRef;
     using tpscore::PointsRef;
 
+    nb::enum_<tpscore::CSRBFPreconditioner>(m, "CSRBFPreconditioner", "Preconditioner of the BiCGSTAB solve.")
+        .value("diagonal", tpscore::CSRBFPreconditioner::diagonal)
+        .value("ilu", tpscore::CSRBFPreconditioner::ilu);
     nb::class_<CSRBF>(m, "CSRBF", "Fitted CSRBF field (use tpscore.CSRBF).")
         .def(
             "__init__",
             [](CSRBF* self, const PointsRef& centres, const MatrixRef& values, const PointsRef& normals,
-               double support, double smoothing, bool quadric, int preconditioner, double tolerance,
+               double support, double smoothing, bool quadric, tpscore::CSRBFPreconditioner preconditioner,
+               double tolerance,
                std::int64_t max_iterations) {
                 tpscore::CSRBFOptions options;
                 options.support = support;
                 options.smoothing = smoothing;
                 options.quadric = quadric;
-                options.preconditioner = static_cast<tpscore::CSRBFPreconditioner>(preconditioner);
+                options.preconditioner = preconditioner;
                 options.tolerance = tolerance;
                 options.max_iterations = max_iterations;
                 nb::gil_scoped_release release;
@@ -32,7 +36,7 @@ void bind_csrbf(nb::module_& m) {
             },
             "centres"_a, "values"_a, "normals"_a, "support"_a, "smoothing"_a, "quadric"_a,
             "preconditioner"_a, "tolerance"_a, "max_iterations"_a,
-            "Fit; normals (0, 3) to estimate them; preconditioner 0 = diagonal, 1 = ILU.")
+            "Fit; normals (0, 3) to estimate them.")
         .def("evaluate", &CSRBF::evaluate, "queries"_a, nb::call_guard<nb::gil_scoped_release>(),
              "The field at (m, 3) queries: (m, k).")
         .def_prop_ro("coefficients", [](const CSRBF& s) { return tpscore::MatrixX(s.coefficients()); })

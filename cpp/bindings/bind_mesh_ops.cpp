@@ -16,14 +16,12 @@ void bind_mesh_ops(nb::module_& m) {
 
     m.def("face_normals", &tpscore::face_normals, "vertices"_a, "faces"_a, release,
           "Unit face normals (m, 3); zero for zero-area faces.");
-    m.def(
-        "vertex_normals",
-        [](const PointsRef& vertices, const FacesRef& faces, int weighting) {
-            return tpscore::vertex_normals(vertices, faces,
-                                           static_cast<tpscore::NormalWeighting>(weighting));
-        },
-        "vertices"_a, "faces"_a, "weighting"_a, release,
-        "Unit vertex normals (n, 3); weighting 0 = area, 1 = angle, 2 = uniform.");
+    nb::enum_<tpscore::NormalWeighting>(m, "NormalWeighting", "How vertex_normals weights the faces' normals.")
+        .value("area", tpscore::NormalWeighting::area)
+        .value("angle", tpscore::NormalWeighting::angle)
+        .value("uniform", tpscore::NormalWeighting::uniform);
+    m.def("vertex_normals", &tpscore::vertex_normals, "vertices"_a, "faces"_a, "weighting"_a, release,
+          "Unit vertex normals (n, 3).");
     m.def(
         "cotan_laplacian",
         [](const PointsRef& vertices, const FacesRef& faces) {

@@ -44,6 +44,9 @@ SkinControls make_controls(const SkinSystem& system, const VectorRef& contractio
 }  // namespace
 
 void bind_skin_sim(nb::module_& m) {
+    nb::enum_<tpscore::SkinIntegrator>(m, "SkinIntegrator", "How a step integrates the skin's motion.")
+        .value("symplectic", tpscore::SkinIntegrator::symplectic)
+        .value("implicit", tpscore::SkinIntegrator::implicit);
     nb::class_<SkinSystem>(m, "SkinSystem",
                            "Layered mass-spring-damper skin (use tpscore.physics.SkinModel).")
         .def(
@@ -164,17 +167,17 @@ void bind_skin_sim(nb::module_& m) {
             "step",
             [](SkinSystem& s, const PointsIn& positions, const PointsIn& velocities,
                const IndexRef& foot, const VectorRef& contractions, double jaw_angle, double dt,
-               int integrator, std::int64_t steps) {
+               tpscore::SkinIntegrator integrator, std::int64_t steps) {
                 SkinState state = make_state(s, positions, velocities, foot);
                 const SkinControls controls = make_controls(s, contractions, jaw_angle);
                 for (std::int64_t k = 0; k < steps; ++k)
-                    s.step(state, controls, dt, static_cast<tpscore::SkinIntegrator>(integrator));
+                    s.step(state, controls, dt, integrator);
                 return std::make_tuple(std::move(state.positions), std::move(state.velocities),
                                        std::move(state.foot));
             },
             "positions"_a, "velocities"_a, "foot"_a, "contractions"_a, "jaw_angle"_a, "dt"_a,
             "integrator"_a, "steps"_a, nb::call_guard<nb::gil_scoped_release>(),
-            "`steps` steps with fixed controls; integrator 0 = semi-implicit, 1 = implicit.")
+            "`steps` steps with fixed controls.")
         .def(
             "free_forces",
             [](const SkinSystem& s, const PointsIn& positions, const PointsIn& velocities,
@@ -189,7 +192,7 @@ void bind_skin_sim(nb::module_& m) {
             "run",
             [](SkinSystem& s, const PointsIn& positions, const PointsIn& velocities,
                const IndexRef& foot, const VectorRef& contractions, double jaw_angle,
-               int integrator, double dt, std::int64_t max_steps, double ramp_time,
+               tpscore::SkinIntegrator integrator, double dt, std::int64_t max_steps, double ramp_time,
                double velocity_tolerance, double force_tolerance, std::int64_t patience,
                std::int64_t check_every, double divergence_distance, std::int64_t record_every,
                std::int64_t record_count) {
@@ -198,7 +201,7 @@ void bind_skin_sim(nb::module_& m) {
                 if (record_count < 0 || record_count > s.particles())
                     throw std::invalid_argument("record_count must lie in [0, particles]");
                 tpscore::SkinRunSettings settings;
-                settings.integrator = static_cast<tpscore::SkinIntegrator>(integrator);
+                settings.integrator = integrator;
                 settings.dt = dt;
                 settings.max_steps = max_steps;
                 settings.ramp_time = ramp_time;

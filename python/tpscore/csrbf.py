@@ -31,7 +31,7 @@ __all__ = ["CSRBF", "ConvergenceError", "wendland"]
 #: dense fit's matrix. Counted before the matrix is assembled.
 MAX_CSRBF_NONZEROS = MAX_SPARSE_ENTRIES
 
-_PRECONDITIONERS = {"diagonal": 0, "ilu": 1}
+_PRECONDITIONERS = {"diagonal": _core.CSRBFPreconditioner.diagonal, "ilu": _core.CSRBFPreconditioner.ilu}
 
 
 class ConvergenceError(RuntimeError):

@@ -41,7 +41,7 @@ __all__ = [
     "mean_curvature",
 ]
 
-_NORMAL_WEIGHTINGS = {"area": 0, "angle": 1, "uniform": 2}
+_NORMAL_WEIGHTINGS = {name: getattr(_core.NormalWeighting, name) for name in ("area", "angle", "uniform")}
 
 
 def _mesh(vertices, faces):

@@ -9,7 +9,11 @@ from dataclasses import fields
 
 from . import _core
 
-__all__ = ["compiled_skin_system"]
+__all__ = ["compiled_skin_system", "INTEGRATORS"]
+
+#: The integrators a step may use, by name: semi-implicit (symplectic) Euler, or a
+#: linearised backward Euler (re-assembled and factorised every step).
+INTEGRATORS = {"symplectic": _core.SkinIntegrator.symplectic, "implicit": _core.SkinIntegrator.implicit}
 
 
 def compiled_skin_system(arrays):

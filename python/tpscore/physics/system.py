@@ -14,15 +14,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..skin_sim import compiled_skin_system
+from ..skin_sim import INTEGRATORS, compiled_skin_system
 
 __all__ = ["SkinArrays", "SKULL", "MANDIBLE", "LINEAR", "SPHINCTER", "INTEGRATORS", "rim_edges"]
 
 SKULL, MANDIBLE = 0, 1
 LINEAR, SPHINCTER = 0, 1
-#: Integrator names and the core's codes: semi-implicit Euler, and linearised backward
-#: Euler (re-assembled and factorised every step).
-INTEGRATORS = {"symplectic": 0, "implicit": 1}
 
 
 def _float(array, shape, name):
