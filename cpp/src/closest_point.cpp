@@ -9,9 +9,9 @@
 #include "tpscore/simd.hpp"
 
 // The closest-point traversal is compiled for AVX-512, AVX2 and the baseline and
-// picked at load time (TPSCORE_SIMD_CLONES): its leaf test is a loop over a leaf's
-// triangles that the compiler vectorises; the helpers are inlined into the cloned
-// traversal (TPSCORE_INLINE), so they take its instruction set.
+// picked at run time (TPSCORE_DISPATCH): its leaf test is a loop over a leaf's
+// triangles that the compiler vectorises; the helpers are inlined into each build of
+// the traversal (TPSCORE_INLINE), so they take its instruction set.
 
 namespace tpscore {
 
@@ -265,10 +265,9 @@ TPSCORE_INLINE void child_box_distances(const MeshSurface::WideNode& node, const
 }
 
 // Closest points for query rows [row_begin, row_end).
-TPSCORE_SIMD_CLONES
-void closest_point_rows(const SurfaceView& surface, const PointsRef& queries, std::size_t row_begin,
-                        std::size_t row_end, double* points, std::int64_t* triangles, double* barycentric,
-                        double* distances) {
+TPSCORE_INLINE void closest_point_rows_impl(const SurfaceView& surface, const PointsRef& queries,
+                                            std::size_t row_begin, std::size_t row_end, double* points,
+                                            std::int64_t* triangles, double* barycentric, double* distances) {
     // Entries are wide nodes (>= 0) or leaves (< 0, as in WideNode::child).
     struct Entry {
         std::int32_t item;
@@ -332,6 +331,11 @@ void closest_point_rows(const SurfaceView& surface, const PointsRef& queries, st
         triangles[r] = best.index;
     }
 }
+
+TPSCORE_DISPATCH(closest_point_rows,
+                 (const SurfaceView& surface, const PointsRef& queries, std::size_t row_begin, std::size_t row_end,
+                  double* points, std::int64_t* triangles, double* barycentric, double* distances),
+                 (surface, queries, row_begin, row_end, points, triangles, barycentric, distances))
 
 }  // namespace
 

@@ -29,7 +29,7 @@ extern "C" {
 double log(double) noexcept __attribute__((simd("notinbranch")));
 double exp(double) noexcept __attribute__((simd("notinbranch")));
 }
-// The loops are cloned per instruction set (TPSCORE_SIMD_CLONES, measured above:
+// The loops are built per instruction set (TPSCORE_DISPATCH, measured above:
 // x86-64-v3 brings AVX2 + FMA, v4 AVX-512); the tps evaluation has a hand-written
 // AVX-512 loop besides (see accumulate_tps_avx512).
 #define TPSCORE_AVX512_TPS TPSCORE_MULTI_TARGET
@@ -73,7 +73,7 @@ TPSCORE_INLINE double phi_of_d2(double d2, double e2) {
 // Kdim > 0 fuses phi and the accumulation (k = 1, 2, 3 are the common cases);
 // Kdim == 0 handles any k through a block of phi values.
 template <RbfKernel Kernel, int Kdim>
-TPSCORE_INLINE void accumulate_block_impl(double e2, const double* __restrict qx,
+TPSCORE_INLINE void accumulate_block_tile(double e2, const double* __restrict qx,
                                                  const double* __restrict qy,
                                                  const double* __restrict qz, const double* cx,
                                                  const double* cy, const double* cz,
@@ -114,17 +114,16 @@ TPSCORE_INLINE void accumulate_block_k(double e2, const double* qx, const double
                                               std::int64_t n, const double* weights,
                                               std::int64_t k, double* acc) {
     switch (k) {
-        case 1: accumulate_block_impl<Kernel, 1>(e2, qx, qy, qz, cx, cy, cz, n, weights, k, acc); break;
-        case 2: accumulate_block_impl<Kernel, 2>(e2, qx, qy, qz, cx, cy, cz, n, weights, k, acc); break;
-        case 3: accumulate_block_impl<Kernel, 3>(e2, qx, qy, qz, cx, cy, cz, n, weights, k, acc); break;
-        default: accumulate_block_impl<Kernel, 0>(e2, qx, qy, qz, cx, cy, cz, n, weights, k, acc);
+        case 1: accumulate_block_tile<Kernel, 1>(e2, qx, qy, qz, cx, cy, cz, n, weights, k, acc); break;
+        case 2: accumulate_block_tile<Kernel, 2>(e2, qx, qy, qz, cx, cy, cz, n, weights, k, acc); break;
+        case 3: accumulate_block_tile<Kernel, 3>(e2, qx, qy, qz, cx, cy, cz, n, weights, k, acc); break;
+        default: accumulate_block_tile<Kernel, 0>(e2, qx, qy, qz, cx, cy, cz, n, weights, k, acc);
     }
 }
 
-TPSCORE_SIMD_CLONES
-void accumulate_block(RbfKernel kernel, double e2, const double* qx, const double* qy,
-                      const double* qz, const double* cx, const double* cy, const double* cz,
-                      std::int64_t n, const double* weights, std::int64_t k, double* acc) {
+TPSCORE_INLINE void accumulate_block_impl(RbfKernel kernel, double e2, const double* qx, const double* qy,
+                                          const double* qz, const double* cx, const double* cy, const double* cz,
+                                          std::int64_t n, const double* weights, std::int64_t k, double* acc) {
     switch (kernel) {
         case RbfKernel::tps:
             accumulate_block_k<RbfKernel::tps>(e2, qx, qy, qz, cx, cy, cz, n, weights, k, acc);
@@ -143,6 +142,12 @@ void accumulate_block(RbfKernel kernel, double e2, const double* qx, const doubl
             break;
     }
 }
+
+TPSCORE_DISPATCH(accumulate_block,
+                 (RbfKernel kernel, double e2, const double* qx, const double* qy, const double* qz,
+                  const double* cx, const double* cy, const double* cz, std::int64_t n, const double* weights,
+                  std::int64_t k, double* acc),
+                 (kernel, e2, qx, qy, qz, cx, cy, cz, n, weights, k, acc))
 
 #if TPSCORE_AVX512_TPS
 // --- the tps evaluation, by hand for AVX-512 ------------------------------------------
@@ -204,7 +209,7 @@ TPSCORE_TARGET_V4 TPSCORE_INLINE __m512d log_avx512(__m512d x,
 }
 
 // acc (Kdim rows of kBlock) += sum_j w_j phi(|q - c_j|) for the tps kernel, as
-// accumulate_block_impl does, with the sums held in registers: 16 queries (two
+// accumulate_block_tile does, with the sums held in registers: 16 queries (two
 // vectors) at a time meet every centre.
 template <int Kdim>
 TPSCORE_TARGET_V4 void accumulate_tps_avx512(const double* qx, const double* qy,
@@ -270,7 +275,7 @@ void accumulate(RbfKernel kernel, double e2, const double* qx, const double* qy,
 }
 
 template <RbfKernel Kernel>
-TPSCORE_INLINE void phi_row_impl(double e2, double x, double y, double z,
+TPSCORE_INLINE void phi_row_kernel(double e2, double x, double y, double z,
                                         const double* cx, const double* cy, const double* cz,
                                         std::int64_t n, double* __restrict out) {
 #pragma omp simd
@@ -281,23 +286,26 @@ TPSCORE_INLINE void phi_row_impl(double e2, double x, double y, double z,
 }
 
 // out[j] = phi(|(x, y, z) - c_j|) for j < n: one row of a kernel matrix.
-TPSCORE_SIMD_CLONES
-void phi_row(RbfKernel kernel, double e2, double x, double y, double z, const double* cx,
-             const double* cy, const double* cz, std::int64_t n, double* out) {
+TPSCORE_INLINE void phi_row_impl(RbfKernel kernel, double e2, double x, double y, double z, const double* cx,
+                                 const double* cy, const double* cz, std::int64_t n, double* out) {
     switch (kernel) {
-        case RbfKernel::tps: phi_row_impl<RbfKernel::tps>(e2, x, y, z, cx, cy, cz, n, out); break;
-        case RbfKernel::biharmonic: phi_row_impl<RbfKernel::biharmonic>(e2, x, y, z, cx, cy, cz, n, out); break;
-        case RbfKernel::triharmonic: phi_row_impl<RbfKernel::triharmonic>(e2, x, y, z, cx, cy, cz, n, out); break;
-        case RbfKernel::multiquadric: phi_row_impl<RbfKernel::multiquadric>(e2, x, y, z, cx, cy, cz, n, out); break;
-        case RbfKernel::gaussian: phi_row_impl<RbfKernel::gaussian>(e2, x, y, z, cx, cy, cz, n, out); break;
+        case RbfKernel::tps: phi_row_kernel<RbfKernel::tps>(e2, x, y, z, cx, cy, cz, n, out); break;
+        case RbfKernel::biharmonic: phi_row_kernel<RbfKernel::biharmonic>(e2, x, y, z, cx, cy, cz, n, out); break;
+        case RbfKernel::triharmonic: phi_row_kernel<RbfKernel::triharmonic>(e2, x, y, z, cx, cy, cz, n, out); break;
+        case RbfKernel::multiquadric: phi_row_kernel<RbfKernel::multiquadric>(e2, x, y, z, cx, cy, cz, n, out); break;
+        case RbfKernel::gaussian: phi_row_kernel<RbfKernel::gaussian>(e2, x, y, z, cx, cy, cz, n, out); break;
     }
 }
+
+TPSCORE_DISPATCH(phi_row,
+                 (RbfKernel kernel, double e2, double x, double y, double z, const double* cx, const double* cy,
+                  const double* cz, std::int64_t n, double* out),
+                 (kernel, e2, x, y, z, cx, cy, cz, n, out))
 
 // What the fit needs from column j of K' (n values) while it is in cache: the sum and
 // the largest of its absolute values (for ||S||_1 and the polynomial scale), and its
 // products with the four columns of V (n x 4, column-major), out[2..5].
-TPSCORE_SIMD_CLONES
-void column_statistics(const double* column, std::int64_t n, const double* v, double* out) {
+TPSCORE_INLINE void column_statistics_impl(const double* column, std::int64_t n, const double* v, double* out) {
     const double *v0 = v, *v1 = v + n, *v2 = v + 2 * n, *v3 = v + 3 * n;
     double sum = 0.0, largest = 0.0, d0 = 0.0, d1 = 0.0, d2 = 0.0, d3 = 0.0;
 #pragma omp simd reduction(+ : sum, d0, d1, d2, d3) reduction(max : largest)
@@ -318,12 +326,14 @@ void column_statistics(const double* column, std::int64_t n, const double* v, do
     out[5] = d3;
 }
 
+TPSCORE_DISPATCH(column_statistics, (const double* column, std::int64_t n, const double* v, double* out),
+                 (column, n, v, out))
+
 // Rows c..n-1 of column c of Q^T K' Q (times sign), in place over K':
 // column[r] = sign (column[r] - Z(r,:) V(c,:)^T - V(r,:) Z(c,:)^T); V and Z are n x 4,
 // column-major.
-TPSCORE_SIMD_CLONES
-void project_column(double* column, std::int64_t c, std::int64_t n, const double* v, const double* z,
-                    double sign) {
+TPSCORE_INLINE void project_column_impl(double* column, std::int64_t c, std::int64_t n, const double* v,
+                                        const double* z, double sign) {
     const double *v0 = v, *v1 = v + n, *v2 = v + 2 * n, *v3 = v + 3 * n;
     const double *z0 = z, *z1 = z + n, *z2 = z + 2 * n, *z3 = z + 3 * n;
     const double vc0 = v0[c], vc1 = v1[c], vc2 = v2[c], vc3 = v3[c];
@@ -333,6 +343,10 @@ void project_column(double* column, std::int64_t c, std::int64_t n, const double
         column[r] = sign * (column[r] - ((z0[r] * vc0 + z1[r] * vc1) + (z2[r] * vc2 + z3[r] * vc3) +
                                          (v0[r] * zc0 + v1[r] * zc1) + (v2[r] * zc2 + v3[r] * zc3)));
 }
+
+TPSCORE_DISPATCH(project_column, (double* column, std::int64_t c, std::int64_t n, const double* v, const double* z,
+                                  double sign),
+                 (column, c, n, v, z, sign))
 
 bool uses_epsilon(RbfKernel kernel) {
     return kernel == RbfKernel::multiquadric || kernel == RbfKernel::gaussian;

@@ -3,26 +3,42 @@
 // The dense Cholesky micro-kernels, the AVX-512 TPS evaluation and the sparse
 // factorisation's supernode kernels are compiled for several x86-64 levels and pick
 // one at load time from the CPU (no -march=native).
-// The loops built with GCC's target_clones pick theirs the same way, through the
-// dynamic loader, and are not affected by the override below.
+// The loops built with TPSCORE_DISPATCH follow it too.
 #pragma once
 
 // The compiler's means of building one loop for several instruction sets, in one place.
 //
-// TPSCORE_SIMD_CLONES: the function is compiled for AVX-512 (x86-64-v4), AVX2 + FMA
-// (x86-64-v3) and the baseline, and the dynamic loader picks one from the CPU (GCC's
-// target_clones: one binary for every x86-64 CPU, no -march=native).
-// TPSCORE_TARGET_V4 / _V3: one function compiled for one level, for kernels that
-// dispatch by hand (simd_level below). TPSCORE_INLINE: always inlined, so that a
+// TPSCORE_TARGET_V4 / _V3: one function compiled for one level (x86-64-v4: AVX-512;
+// v3: AVX2 + FMA): one binary for every x86-64 CPU, no -march=native, the level
+// picked at run time by simd_level() below. TPSCORE_INLINE: always inlined, so that a
 // helper takes the instruction set of the function it is inlined into.
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
 #define TPSCORE_MULTI_TARGET 1
-#define TPSCORE_SIMD_CLONES __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
 #define TPSCORE_TARGET_V4 __attribute__((target("arch=x86-64-v4")))
 #define TPSCORE_TARGET_V3 __attribute__((target("arch=x86-64-v3")))
 #else
 #define TPSCORE_MULTI_TARGET 0
-#define TPSCORE_SIMD_CLONES
+#endif
+
+// TPSCORE_DISPATCH(NAME, (parameters), (arguments)) defines `void NAME(parameters)`
+// that runs `NAME##_impl(arguments)` built for the level simd_level() picks: three
+// wrappers, one per level, each with its own inlined copy of the (TPSCORE_INLINE)
+// implementation, so that TPSCORE_SIMD lowers these loops as it lowers the rest.
+#if TPSCORE_MULTI_TARGET
+#define TPSCORE_DISPATCH(NAME, PARAMS, ARGS)                           \
+    TPSCORE_TARGET_V4 void NAME##_v4 PARAMS { NAME##_impl ARGS; }      \
+    TPSCORE_TARGET_V3 void NAME##_v3 PARAMS { NAME##_impl ARGS; }      \
+    void NAME##_baseline PARAMS { NAME##_impl ARGS; }                  \
+    void NAME PARAMS {                                                 \
+        switch (::tpscore::simd_level()) {                             \
+            case ::tpscore::SimdLevel::avx512: NAME##_v4 ARGS; break;  \
+            case ::tpscore::SimdLevel::avx2: NAME##_v3 ARGS; break;    \
+            default: NAME##_baseline ARGS;                             \
+        }                                                              \
+    }
+#else
+#define TPSCORE_DISPATCH(NAME, PARAMS, ARGS) \
+    void NAME PARAMS { NAME##_impl ARGS; }
 #endif
 
 #if defined(__GNUC__)
