@@ -43,12 +43,13 @@ DETECT_REGIONS: dict[str, tuple[int, ...]] = {
 }
 #: The radius (mm) of the average face's patch around a region's landmarks.
 _PATCH_RADIUS_MM = 18.0
-#: A landmark with no scan point within this distance (mm) of the fitted one is missing.
-_MISSING_MM = 4.0
+#: A landmark with no scan point within this distance (mm, across the face) is missing.
+_MISSING_MM = 2.5
 #: Points the global ICP uses at most (evenly spread over the scan's grid).
 _MAX_ICP_POINTS = 6000
 #: The average face within this distance (mm, across the face) of its nose tip is fitted.
 _GLOBAL_RADIUS_MM = 70.0
+_GLOBAL_SCALE = False
 
 
 def _scan_points(scan) -> tuple[np.ndarray, np.ndarray | None]:
@@ -163,7 +164,7 @@ def detect_landmarks(scan, *, image=None, uv=None) -> np.ndarray:
     model = _even_sample(model_all[central], _MAX_ICP_POINTS)
     s, rotation, t = 1.0, np.eye(3), tip - model_landmarks[landmark_index("Nose tip")]
     for keep in (0.6, 0.8, 0.9):
-        s, rotation, t, _ = _icp(model, tree, points, s, rotation, t, scale=True, iterations=12, keep=keep)
+        s, rotation, t, _ = _icp(model, tree, points, s, rotation, t, scale=_GLOBAL_SCALE, iterations=12, keep=keep)
     fitted = s * model_landmarks @ rotation.T + t
     # 3. each region once more, rigidly, from the global fit
     model_tree = KDTree(model_all)
@@ -186,8 +187,6 @@ def detect_landmarks(scan, *, image=None, uv=None) -> np.ndarray:
     del model_tree
     # 4. local cues in the fitted frame (R^T maps scan directions to the face's)
     result = _cues.refine(result, points, tree, rotation, grid)
-    # 5. a landmark without surface near it is missing
-    distance, _ = tree.query(result)
-    result[np.asarray(distance).ravel() > _MISSING_MM] = np.nan
-    return result
+    # 5. onto the surface along the view axis; a landmark without surface under it is missing
+    return _cues.project_onto_surface(result, points, rotation, _MISSING_MM)
 

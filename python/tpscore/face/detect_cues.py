@@ -15,6 +15,13 @@ _UPPER_INNER = landmark_index("Upper lip inner middle")
 _LOWER_INNER = landmark_index("Lower lip inner middle")
 _UPPER_OUTER = landmark_index("Upper lip outer middle")
 _LOWER_OUTER = landmark_index("Lower lip outer middle")
+_INNER_EYES = (landmark_index("Inner left eye corner"), landmark_index("Inner right eye corner"))
+_OUTER_EYES = (landmark_index("Outer left eye corner"), landmark_index("Outer right eye corner"))
+_PEAKS = (landmark_index("Left nose peak"), landmark_index("Right nose peak"))
+_PEAK_ABOVE_SUBNASALE_MM = 1.5
+_HOLLOW_RADIUS_MM = 8.0
+_BROWS = tuple(range(6))
+_BROW_BELOW_MM, _BROW_ABOVE_MM = 4.0, 16.0
 _CORNERS = (landmark_index("Left mouth corner"), landmark_index("Right mouth corner"))
 
 
@@ -129,6 +136,14 @@ def _refine_midline(result, points, rotation):
         return
     filled = np.interp(np.arange(len(z)), np.flatnonzero(known), z[known])
     smooth = ndimage.uniform_filter1d(filled, 3)
+    # the nose peaks (the alae's base) lie at the height where the nose's slope ends
+    descent = -np.gradient(smooth)
+    flat = np.flatnonzero((np.arange(len(smooth)) > 4) & (descent < 0.3))
+    if len(flat):
+        drop = ys[flat[0]] + _PEAK_ABOVE_SUBNASALE_MM
+        for peak in _PEAKS:
+            here = (result[peak] - tip) @ rotation
+            result[peak] = result[peak] + (drop - here[1]) * rotation[:, 1]
     start = 8  # below the nose's own slope
     peaks, _ = find_peaks(smooth[start:], prominence=0.8)
     peaks = peaks + start
@@ -164,10 +179,87 @@ def _refine_midline(result, points, rotation):
         result[_LOWER_INNER] = points[pick[hollow]]
 
 
+def _follow_mouth(result, fitted, rotation):
+    """The mouth corners move up or down with the lips' contact line found on the
+    midline (the average face's mouth sits where its own lips meet)."""
+    contact = (result[_UPPER_INNER] + result[_LOWER_INNER]) / 2
+    before = (fitted[_UPPER_INNER] + fitted[_LOWER_INNER]) / 2
+    if not (np.isfinite(contact).all() and np.isfinite(before).all()):
+        return
+    shift = ((contact - before) @ rotation)[1]
+    for corner in _CORNERS:
+        result[corner] = result[corner] + shift * rotation[:, 1]
+
+
+def project_onto_surface(result, points, rotation, radius_mm: float):
+    """Each landmark moved along the face's view axis onto the scan: the mean of the
+    scan points within `radius_mm` of it across the face; NaN where there are none."""
+    local = points @ rotation
+    tree = KDTree(np.c_[local[:, :2], np.zeros(len(local))])
+    out = np.full_like(result, np.nan)
+    for i, landmark in enumerate(result):
+        if not np.isfinite(landmark).all():
+            continue
+        here = landmark @ rotation
+        near = np.asarray(tree.query_radius(np.array([[here[0], here[1], 0.0]]), radius_mm)[0], dtype=np.int64)
+        if len(near) == 0:
+            continue
+        # the front-most layer under the landmark (a grid sees one surface per x, y)
+        z = local[near, 2]
+        front = near[z > z.max() - 3.0]
+        moved = here.copy()
+        moved[2] = local[front, 2].mean()
+        out[i] = rotation @ moved
+    return out
+
+
+def _deepest_near(result, points, rotation, indices, radius_mm):
+    """Landmarks at hollows (the inner eye corners): the most recessed scan point within
+    `radius_mm` across the face of the fitted one."""
+    local = points @ rotation
+    for i in indices:
+        if not np.isfinite(result[i]).all():
+            continue
+        here = result[i] @ rotation
+        near = np.flatnonzero(np.linalg.norm(local[:, :2] - here[:2], axis=1) < radius_mm)
+        if len(near) < 5:
+            continue
+        depth = local[near, 2]
+        deepest = near[depth <= np.quantile(depth, 0.05)]
+        result[i] = points[deepest].mean(axis=0)
+
+
+def _brow_ridges(result, points, rotation):
+    """The brows on the brow ridge: the most protruding point above the fitted one, in
+    a short vertical strip of the face."""
+    local = points @ rotation
+    for i in _BROWS:
+        if not np.isfinite(result[i]).all():
+            continue
+        here = result[i] @ rotation
+        dy = local[:, 1] - here[1]
+        strip = np.flatnonzero((np.abs(local[:, 0] - here[0]) < 2.0) & (dy > -_BROW_BELOW_MM)
+                               & (dy < _BROW_ABOVE_MM))
+        if len(strip) < 5:
+            continue
+        top = strip[local[strip, 2] >= np.quantile(local[strip, 2], 0.9)]
+        result[i] = rotation @ np.array([here[0], local[top, 1].mean(), here[2]])
+
+
 def refine(result: np.ndarray, points: np.ndarray, tree: KDTree, rotation: np.ndarray,
            grid: np.ndarray | None) -> np.ndarray:
     """The fitted landmarks moved to their local cues."""
+    fitted = result.copy()
     result = result.copy()
     _refine_tip(result, points, tree, rotation)
     _refine_midline(result, points, rotation)
+    _follow_mouth(result, fitted, rotation)
+    before = result[list(_INNER_EYES)].copy()
+    _deepest_near(result, points, rotation, _INNER_EYES, _HOLLOW_RADIUS_MM)
+    _brow_ridges(result, points, rotation)
+    # the outer eye corners keep the eye's line: they move up or down with the inner ones
+    for inner, outer, old in zip(_INNER_EYES, _OUTER_EYES, before):
+        shift = ((result[inner] - old) @ rotation)[1]
+        if np.isfinite(shift):
+            result[outer] = result[outer] + shift * rotation[:, 1]
     return result
