@@ -9,9 +9,15 @@ procedural faces):
 2. the average face fitted to the scan by a trimmed similarity ICP from that nose tip,
    then once more per region (brows, eyes, nose, mouth, chin) by a rigid ICP of the
    average face's patch around the region's landmarks, which carries its landmarks;
-3. local cues: the nose tip moves to the most protruding point near it, the inner lips
-   to the edges of the mouth's opening on the midline when the mouth is open;
-4. a landmark with no scan surface near it (a hole, a cut) is NaN.
+3. local cues: the nose tip moves to the most protruding point near it; the upper and
+   lower lips to the bulges of the midline profile below the nose, the inner lips to
+   the hollow between them (or the edges of the opening when the mouth is open), the
+   chin to where the midline turns under the face; the nose peaks to the height where
+   the nose's slope ends; the mouth corners follow the lips' contact line; the inner
+   eye corners move to the deepest point near them and the outer ones follow; the
+   brows to the brow ridge;
+4. every landmark onto the surface along the face's view axis; one with no scan
+   surface under it (a hole, a cut) is NaN.
 
 :mod:`tpscore.face.detect_cues` holds the local cues.
 """
