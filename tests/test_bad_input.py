@@ -288,6 +288,16 @@ CASES = [
      ValueError, "not an average face model"),
     ("npz-missing-array", lambda t: AverageFace.load(_npz(t, "a.npz", points=np.zeros(3))), ValueError,
      "lacks"),
+    # automatic landmarks: the scan is named, and a file too small to be a face
+    ("detect-landmarks-nan-cloud", lambda t: tpscore.detect_landmarks(np.full((300, 3), np.nan)), ValueError,
+     "scan"),
+    ("detect-landmarks-wrong-shape", lambda t: tpscore.detect_landmarks(np.zeros((300, 4))), ValueError, "scan"),
+    ("detect-landmarks-empty-grid", lambda t: tpscore.detect_landmarks(np.full((30, 30, 3), np.nan)), ValueError,
+     "scan"),
+    ("load-scan-detect-not-bool", lambda t: load_scan(_write(t, "a.obj", "v 0 0 0\n"), detect="yes"), ValueError,
+     "detect"),
+    ("load-scan-auto-too-few-points", lambda t: load_scan(_write(t, "few.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\n"), "auto"),
+     ValueError, "few.obj"),
     # a scan the resampling cannot use: the message names the file
     ("load-scan-collinear-points", lambda t: load_scan(_write(t, "line.obj", "v 0 0 0\nv 1 1 0\nv 2 2 0\nv 3 3 1\n")),
      ValueError, "line.obj"),

@@ -14,6 +14,7 @@ from tpscore import (
     BntScan,
     FaceGrid,
     LandmarkSnapWarning,
+    LandmarksDetectedWarning,
     load_scan,
     load_scans,
     read_bnt,
@@ -374,8 +375,13 @@ def test_load_scan_bnt_and_mesh(tmp_path, scan):
     assert loaded.landmark_vertices[13] == direct.landmark_vertices[13] >= 0
 
     write_mesh(tmp_path / "alone.obj", cloud, [])
-    with pytest.warns(LandmarkSnapWarning, match="no landmark file"):
+    # without a landmark file they are detected from the scan, and a warning says so
+    with pytest.warns(LandmarksDetectedWarning, match="no landmark file.*detected"):
         alone = load_scan(tmp_path / "alone.obj")
+    assert np.isfinite(alone.landmarks).any()
+    # detect=False keeps them all missing, as before detection existed
+    with pytest.warns(LandmarkSnapWarning, match="no landmark file"):
+        alone = load_scan(tmp_path / "alone.obj", detect=False)
     assert (alone.landmark_vertices == -1).all()
 
 
@@ -441,7 +447,7 @@ def test_load_scan_reads_the_named_image_beside_the_scan(tmp_path, scan):
     write_bnt(tmp_path / "face.bnt", scan)           # names synthetic.png
     image = checkerboard(2 * NROWS, 2 * NCOLS)
     Image.fromarray(image).save(tmp_path / "synthetic.png")
-    with pytest.warns(LandmarkSnapWarning):
+    with pytest.warns(LandmarksDetectedWarning):
         grid = load_scan(tmp_path / "face.bnt", shape=(60, 70))
     np.testing.assert_array_equal(grid.image, image)
     assert not grid.image.flags.writeable
@@ -462,7 +468,7 @@ def test_load_scan_reads_the_named_image_beside_the_scan(tmp_path, scan):
 
 def test_missing_image_leaves_a_geometry_only_scan(tmp_path, scan):
     write_bnt(tmp_path / "face.bnt", scan)
-    with pytest.warns(LandmarkSnapWarning):
+    with pytest.warns(LandmarksDetectedWarning):
         grid = load_scan(tmp_path / "face.bnt", shape=(60, 70))
     assert grid.image is None and grid.colours is None
 

@@ -74,6 +74,7 @@ from .mesh import (
     voronoi_areas,
 )
 from .face.normalise import FrameTransform, NormalisedFace, normalise_face, similarity_transform, thesis_affine_transform
+from .face.detect import LandmarksDetectedWarning, detect_landmarks
 from .face.grid import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, load_scans, resample_scan
 from .face.pose import ImplausibleLandmarksError, ImplausibleLandmarksWarning, MirroredLandmarksError, ScanPose, scan_pose
 from .rbf import RBF, RBF_KERNELS, TPS
@@ -110,6 +111,8 @@ __all__ = [
     "FaceGrid",
     "GridMesh",
     "LandmarkSnapWarning",
+    "LandmarksDetectedWarning",
+    "detect_landmarks",
     "resample_scan",
     "ScanPose",
     "scan_pose",

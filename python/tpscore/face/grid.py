@@ -37,6 +37,7 @@ from .._threads import blas_on_one_thread, num_threads
 from .._validation import MAX_COORDINATE, as_array, as_path, as_positive
 from ..geometry import FrameTransform
 from ..mesh import grid_triangles
+from .detect import LandmarksDetectedWarning, detect_landmarks
 from .image import as_colour_image as _as_colour_image
 from .image import check_image_fits, sample_image
 from .io import BntScan, landmark_file_beside, read_bnt, read_image, read_landmarks, read_mesh
@@ -440,7 +441,7 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
 
 
 def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
-              max_gap_mm: float = DEFAULT_MAX_GAP_MM, image_path=None) -> FaceGrid:
+              max_gap_mm: float = DEFAULT_MAX_GAP_MM, image_path=None, detect: bool = True) -> FaceGrid:
     """Read a scan and its landmarks and resample them with :func:`resample_scan`.
 
     Parameters
@@ -449,15 +450,20 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
         A Bosphorus ``.bnt``, or any mesh or point cloud trimesh reads (its vertices
         are the points; faces are not used).
     landmarks_path : str or PathLike, optional
-        ``.lm3``, ``.csv`` or ``.json``. By default the file beside `path` with the
-        same stem and one of these suffixes (``.lm3`` first); if there is none, the
-        landmarks are all missing and a :class:`LandmarkSnapWarning` says so.
+        ``.lm3``, ``.csv`` or ``.json``, or ``"auto"`` to detect them from the scan
+        (:func:`~tpscore.face.detect.detect_landmarks`). By default the file beside
+        `path` with the same stem and one of these suffixes (``.lm3`` first); if there
+        is none, the landmarks are detected and a
+        :class:`~tpscore.face.detect.LandmarksDetectedWarning` says so.
     shape, max_gap_mm
         As in :func:`resample_scan`.
     image_path : str or PathLike, optional
         The colour image of a ``.bnt`` scan. By default the image the ``.bnt`` names,
         beside it; when that file does not exist the scan is geometry only
         (``FaceGrid.image`` is None) and every step works without colour.
+    detect : bool, default True
+        Whether a scan without a landmark file has its landmarks detected; False keeps
+        them all missing (a :class:`LandmarkSnapWarning` says so).
 
     Raises
     ------
@@ -482,10 +488,19 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
         if image_path is not None:
             raise ValueError(f"image_path: only a .bnt scan carries the u,v an image needs, not {str(path)!r}")
         source, _ = read_mesh(path)
-    if landmarks_path is None:
+    if not isinstance(detect, (bool, np.bool_)):
+        raise ValueError(f"detect: must be True or False, got {detect!r}")
+    auto = isinstance(landmarks_path, str) and landmarks_path == "auto"
+    if auto:
+        landmarks = _detect(source, path)
+    elif landmarks_path is None:
         found = landmark_file_beside(path)
         if found is not None:
             landmarks = read_landmarks(found)
+        elif detect:
+            landmarks = _detect(source, path)
+            warnings.warn(f"no landmark file beside {str(path)!r} (looked for .lm3, .csv, .json): "
+                          "landmarks detected from the scan", LandmarksDetectedWarning, stacklevel=2)
         else:
             warnings.warn(
                 f"no landmark file beside {str(path)!r} (looked for .lm3, .csv, .json); "
@@ -500,6 +515,13 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
     if image is not None:
         grid.image = _as_colour_image(image)
     return grid
+
+
+def _detect(source, path):
+    try:
+        return detect_landmarks(source)
+    except ValueError as exc:
+        raise ValueError(f"{str(path)!r}: landmarks cannot be detected: {exc}") from None
 
 
 @blas_on_one_thread

@@ -1,0 +1,198 @@
+"""Automatic landmarks: the 22 Bosphorus landmarks of a raw scan, in its own frame.
+
+The scan's geometry finds them; no annotated face model is used beyond tpscore's own
+average face (:func:`~tpscore.face.average_face.load_average_face`, built from the
+procedural faces):
+
+1. a coarse nose tip, the most protruding point of the smoothed depth near the middle
+   of the face (scans look toward +z);
+2. the average face fitted to the scan by a trimmed similarity ICP from that nose tip,
+   then once more per region (brows, eyes, nose, mouth, chin) by a rigid ICP of the
+   average face's patch around the region's landmarks, which carries its landmarks;
+3. local cues: the nose tip moves to the most protruding point near it; the upper and
+   lower lips to the bulges of the midline profile below the nose, the inner lips to
+   the hollow between them (or the edges of the opening when the mouth is open), the
+   chin to where the midline turns under the face; the nose peaks to the height where
+   the nose's slope ends; the mouth corners follow the lips' contact line; the inner
+   eye corners move to the deepest point near them and the outer ones follow; the
+   brows to the brow ridge;
+4. every landmark onto the surface along the face's view axis; one with no scan
+   surface under it (a hole, a cut) is NaN.
+
+:mod:`tpscore.face.detect_cues` holds the local cues.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .._validation import as_array
+from ..spatial import KDTree
+from .landmarks import N_LANDMARKS, landmark_index
+from . import detect_cues as _cues
+
+__all__ = ["detect_landmarks", "LandmarksDetectedWarning", "DETECT_REGIONS"]
+
+
+class LandmarksDetectedWarning(UserWarning):
+    """A scan had no landmark file: its landmarks were detected from the scan."""
+
+
+#: The regions fitted one by one after the global fit: a name and its landmarks.
+DETECT_REGIONS: dict[str, tuple[int, ...]] = {
+    "left brow": (0, 1, 2),
+    "right brow": (3, 4, 5),
+    "left eye": (6, 7, 10),
+    "right eye": (8, 9, 11),
+    "nose": (10, 11, 12, 13, 14),
+    "mouth": (15, 16, 17, 18, 19, 20),
+    "chin": (20, 21),
+}
+#: The radius (mm) of the average face's patch around a region's landmarks.
+_PATCH_RADIUS_MM = 18.0
+#: A landmark with no scan point within this distance (mm, across the face) is missing.
+_MISSING_MM = 2.5
+#: Points the global ICP uses at most (evenly spread over the scan's grid).
+_MAX_ICP_POINTS = 6000
+#: The average face within this distance (mm, across the face) of its nose tip is fitted.
+_GLOBAL_RADIUS_MM = 70.0
+_GLOBAL_SCALE = False
+
+
+def _scan_points(scan) -> tuple[np.ndarray, np.ndarray | None]:
+    """(n, 3) finite points and, for a grid, the (H, W, 3) grid with NaN holes."""
+    points = getattr(scan, "points", scan)
+    if points is None:
+        raise ValueError("scan: must carry points, got None")
+    array = as_array(points, "scan")
+    if array.dtype == object or not np.issubdtype(array.dtype, np.number):
+        raise ValueError(f"scan: must be numeric points, got dtype {array.dtype}")
+    array = np.asarray(array, dtype=np.float64)
+    grid = None
+    if array.ndim == 3 and array.shape[2] == 3:
+        grid = array.copy()
+        valid = getattr(scan, "valid", getattr(scan, "mask", None))
+        finite = np.isfinite(grid).all(axis=2)
+        if valid is not None:
+            valid = np.asarray(valid, dtype=bool)
+            if valid.shape != finite.shape:
+                raise ValueError(f"scan: its mask has shape {valid.shape}, its points {array.shape[:2]}")
+            finite &= valid
+        grid[~finite] = np.nan
+        flat = grid[finite]
+    elif array.ndim == 2 and array.shape[1] == 3:
+        if not np.isfinite(array).all():
+            raise ValueError("scan: a point cloud must be finite (NaN or inf among its points)")
+        flat = array
+    else:
+        raise ValueError(f"scan: must be (n, 3) points or an (H, W, 3) grid, got shape {array.shape}")
+    if len(flat) < 200:
+        raise ValueError(f"scan: needs at least 200 valid points to find a face, got {len(flat)}")
+    if np.abs(flat).max() > 1e5:
+        raise ValueError("scan: coordinates beyond 1e5 mm; a face is measured in millimetres")
+    return flat, grid
+
+
+def _similarity(source: np.ndarray, target: np.ndarray, scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
+    """s, R, t minimising |s R source + t - target|^2 (Umeyama)."""
+    ms, mt = source.mean(axis=0), target.mean(axis=0)
+    a, b = source - ms, target - mt
+    u, sv, vt = np.linalg.svd(b.T @ a)
+    d = np.ones(3)
+    d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
+    rotation = (u * d) @ vt
+    s = float((sv * d).sum() / (a ** 2).sum()) if scale else 1.0
+    return s, rotation, mt - s * rotation @ ms
+
+
+def _icp(model: np.ndarray, tree: KDTree, targets: np.ndarray, s: float, rotation: np.ndarray,
+         t: np.ndarray, *, scale: bool, iterations: int, keep: float, max_scale_step: float = 0.03):
+    """Trimmed ICP of model points onto the scan's tree; returns s, R, t and the
+    median residual (mm)."""
+    residual = np.inf
+    for _ in range(iterations):
+        moved = s * model @ rotation.T + t
+        distance, index = tree.query(moved)
+        distance = np.asarray(distance).ravel()
+        index = np.asarray(index).ravel()
+        cut = np.quantile(distance, keep)
+        use = distance <= cut
+        if use.sum() < 10:
+            break
+        ds, dr, dt = _similarity(moved[use], targets[index[use]], scale)
+        if scale:
+            ds = float(np.clip(ds, 1 - max_scale_step, 1 + max_scale_step))
+        s, rotation, t = ds * s, dr @ rotation, ds * dr @ t + dt
+        residual = float(np.median(distance[use]))
+    return s, rotation, t, residual
+
+
+def _even_sample(points: np.ndarray, count: int) -> np.ndarray:
+    step = max(1, len(points) // count)
+    return points[::step]
+
+
+def detect_landmarks(scan, *, image=None, uv=None) -> np.ndarray:
+    """The 22 Bosphorus landmarks of a raw scan, found from its geometry.
+
+    Parameters
+    ----------
+    scan : BntScan, FaceGrid, (H, W, 3) grid or (n, 3) points
+        The scan in its own frame: millimetres, the face looking toward +z (within a
+        few tens of degrees), +y up. A grid's NaN points (or those outside its
+        ``valid``/``mask``) are holes.
+    image, uv : optional
+        Accepted for the scan's colour image and its u,v; the present cues are
+        geometric and do not read them.
+
+    Returns
+    -------
+    (22, 3) float64
+        In Bosphorus order (:data:`~tpscore.face.landmarks.LANDMARK_NAMES`), NaN rows
+        where the scan has no surface at the landmark (a hole, a cut).
+
+    Raises
+    ------
+    ValueError
+        Naming ``scan``: not points, non-finite cloud, wrong shape, too few points.
+    """
+    from .average_face import load_average_face  # the average face needs the grid module
+
+    points, grid = _scan_points(scan)
+    afm = load_average_face()
+    model_all = afm.grid.points[afm.grid.mask]
+    model_landmarks = afm.landmarks
+    tree = KDTree(points)
+
+    # 1. a coarse nose tip: the most protruding point of the smoothed surface
+    tip = _cues.coarse_nose_tip(points, grid)
+    # 2. the global fit: the average face's nose tip on it, then a similarity ICP
+    central = np.linalg.norm(model_all[:, :2] - model_landmarks[landmark_index("Nose tip"), :2], axis=1) < _GLOBAL_RADIUS_MM
+    model = _even_sample(model_all[central], _MAX_ICP_POINTS)
+    s, rotation, t = 1.0, np.eye(3), tip - model_landmarks[landmark_index("Nose tip")]
+    for keep in (0.6, 0.8, 0.9):
+        s, rotation, t, _ = _icp(model, tree, points, s, rotation, t, scale=_GLOBAL_SCALE, iterations=12, keep=keep)
+    fitted = s * model_landmarks @ rotation.T + t
+    # 3. each region once more, rigidly, from the global fit
+    model_tree = KDTree(model_all)
+    result = fitted.copy()
+    votes = np.zeros(N_LANDMARKS)
+    sums = np.zeros((N_LANDMARKS, 3))
+    for indices in DETECT_REGIONS.values():
+        centre = np.nanmean(model_landmarks[list(indices)], axis=0)
+        reach = _PATCH_RADIUS_MM + np.linalg.norm(model_landmarks[list(indices)] - centre, axis=1).max()
+        near = np.linalg.norm(model_all - centre, axis=1) < reach
+        patch = model_all[near]
+        if len(patch) < 50:
+            continue
+        ls, lr, lt, _ = _icp(patch, tree, points, s, rotation, t, scale=False, iterations=10, keep=0.8)
+        for i in indices:
+            sums[i] += ls * lr @ model_landmarks[i] + lt
+            votes[i] += 1
+    has = votes > 0
+    result[has] = sums[has] / votes[has, None]
+    del model_tree
+    # 4. local cues in the fitted frame (R^T maps scan directions to the face's)
+    result = _cues.refine(result, points, tree, rotation, grid)
+    # 5. onto the surface along the view axis; a landmark without surface under it is missing
+    return _cues.project_onto_surface(result, points, rotation, _MISSING_MM)
+

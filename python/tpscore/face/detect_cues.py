@@ -1,0 +1,265 @@
+"""The local cues of :mod:`tpscore.face.detect`: the coarse nose tip and the
+refinement of single landmarks on the scan's surface."""
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from ..spatial import KDTree
+from .landmarks import landmark_index
+
+__all__ = ["coarse_nose_tip", "refine"]
+
+_TIP = landmark_index("Nose tip")
+_UPPER_INNER = landmark_index("Upper lip inner middle")
+_LOWER_INNER = landmark_index("Lower lip inner middle")
+_UPPER_OUTER = landmark_index("Upper lip outer middle")
+_LOWER_OUTER = landmark_index("Lower lip outer middle")
+_INNER_EYES = (landmark_index("Inner left eye corner"), landmark_index("Inner right eye corner"))
+_OUTER_EYES = (landmark_index("Outer left eye corner"), landmark_index("Outer right eye corner"))
+_PEAKS = (landmark_index("Left nose peak"), landmark_index("Right nose peak"))
+_PEAK_ABOVE_SUBNASALE_MM = 1.5
+_HOLLOW_RADIUS_MM = 8.0
+_BROWS = tuple(range(6))
+_BROW_BELOW_MM, _BROW_ABOVE_MM = 4.0, 16.0
+_CORNERS = (landmark_index("Left mouth corner"), landmark_index("Right mouth corner"))
+
+
+def _smoothed_depth(points: np.ndarray, grid: np.ndarray | None, radius_mm: float) -> np.ndarray:
+    """z averaged over about `radius_mm` around each point (the finite points' order)."""
+    if grid is not None:
+        valid = np.isfinite(grid[..., 2])
+        spacing = np.nanmedian(np.abs(np.diff(grid[..., 0], axis=1)))
+        size = int(max(3, round(2 * radius_mm / max(spacing, 1e-3)) | 1))
+        z = np.where(valid, grid[..., 2], 0.0)
+        total = ndimage.uniform_filter(z, size, mode="constant")
+        count = ndimage.uniform_filter(valid.astype(float), size, mode="constant")
+        with np.errstate(invalid="ignore", divide="ignore"):
+            smooth = total / count
+        # a point near a hole's edge or the border averages too few neighbours
+        smooth[count < 0.6] = -np.inf
+        return smooth[valid]
+    tree = KDTree(points)
+    k = min(40, len(points))
+    _, index = tree.query(points, k=k)
+    return points[np.asarray(index), 2].mean(axis=1)
+
+
+def coarse_nose_tip(points: np.ndarray, grid: np.ndarray | None) -> np.ndarray:
+    """The most protruding point of the smoothed surface in the middle of the face."""
+    lo, hi = np.percentile(points[:, :2], [2, 98], axis=0)
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    middle = (np.abs(points[:, :2] - centre) < 0.6 * half).all(axis=1)
+    depth = _smoothed_depth(points, grid, 4.0)
+    depth = np.where(middle, depth, -np.inf)
+    return points[int(np.argmax(depth))].copy()
+
+
+def _face_frame(points: np.ndarray, rotation: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Points in the fitted face's axes (x left, y up, z out), about `origin`."""
+    return (points - origin) @ rotation
+
+
+def _refine_tip(result, points, tree, rotation):
+    tip = result[_TIP]
+    if not np.isfinite(tip).all():
+        return
+    near = np.asarray(tree.query_radius(tip[None], 12.0)[0], dtype=np.int64)
+    if len(near) < 10:
+        return
+    local = _face_frame(points[near], rotation, tip)
+    # the protrusion, smoothed over a few millimetres: the top points' mean
+    order = np.argsort(-local[:, 2])
+    top = order[: max(5, len(order) // 40)]
+    result[_TIP] = points[near[top]].mean(axis=0)
+
+
+def _refine_inner_lips(result, points, tree, rotation):
+    """When the mouth is open the scan has a gap (or a deep trough) on the midline
+    between the lips: the inner lip points are its edges."""
+    upper, lower = result[_UPPER_OUTER], result[_LOWER_OUTER]
+    if not (np.isfinite(upper).all() and np.isfinite(lower).all()):
+        return
+    origin = (upper + lower) / 2
+    local = _face_frame(points, rotation, origin)
+    strip = (np.abs(local[:, 0]) < 2.5) & (np.abs(local[:, 1]) < 25) & (np.abs(local[:, 2]) < 30)
+    if strip.sum() < 10:
+        return
+    lu = _face_frame(upper[None], rotation, origin)[0]
+    ll = _face_frame(lower[None], rotation, origin)[0]
+    ys = local[strip, 1]
+    between = (ys < lu[1] + 2) & (ys > ll[1] - 2)
+    if between.sum() < 3:
+        return
+    sy = np.sort(ys[between])
+    gaps = np.diff(sy)
+    k = int(np.argmax(gaps))
+    if gaps[k] < 2.5:
+        return  # closed: the lips touch; keep the fitted contact line
+    top_y, bottom_y = sy[k + 1], sy[k]
+    index = np.flatnonzero(strip)
+    for target, y in ((_UPPER_INNER, top_y), (_LOWER_INNER, bottom_y)):
+        pick = index[np.abs(local[index, 1] - y) < 0.8]
+        if len(pick):
+            result[target] = points[pick[np.argmin(np.abs(local[pick, 0]))]]
+
+
+def _midline_profile(points, rotation, tip, step=1.0):
+    """The face's depth along its midline below the nose tip: y (mm, down from the tip,
+    negative), z (NaN where the strip has no point) and the scan point of each bin."""
+    local = _face_frame(points, rotation, tip)
+    strip = np.flatnonzero((np.abs(local[:, 0]) < 3.0) & (local[:, 1] < 0) & (local[:, 1] > -120))
+    edges = np.arange(0.0, -120.0 - step, -step)
+    ys = (edges[:-1] + edges[1:]) / 2
+    z = np.full(len(ys), np.nan)
+    pick = np.full(len(ys), -1)
+    bins = np.clip(((-local[strip, 1]) / step).astype(int), 0, len(ys) - 1)
+    for b in np.unique(bins):
+        members = strip[bins == b]
+        best = members[np.argmin(np.abs(local[members, 0]))]
+        z[b] = np.median(local[members, 2])
+        pick[b] = best
+    return ys, z, pick
+
+
+def _refine_midline(result, points, rotation):
+    """Upper lip, lower lip and chin as the successive bulges of the midline profile
+    below the nose tip; the inner lips at the hollow (or gap) between the lips."""
+    from scipy.signal import find_peaks
+
+    tip = result[_TIP]
+    if not np.isfinite(tip).all():
+        return
+    ys, z, pick = _midline_profile(points, rotation, tip)
+    known = np.isfinite(z)
+    if known.sum() < 30:
+        return
+    filled = np.interp(np.arange(len(z)), np.flatnonzero(known), z[known])
+    smooth = ndimage.uniform_filter1d(filled, 3)
+    # the nose peaks (the alae's base) lie at the height where the nose's slope ends
+    descent = -np.gradient(smooth)
+    flat = np.flatnonzero((np.arange(len(smooth)) > 4) & (descent < 0.3))
+    if len(flat):
+        drop = ys[flat[0]] + _PEAK_ABOVE_SUBNASALE_MM
+        for peak in _PEAKS:
+            here = (result[peak] - tip) @ rotation
+            result[peak] = result[peak] + (drop - here[1]) * rotation[:, 1]
+    start = 8  # below the nose's own slope
+    peaks, _ = find_peaks(smooth[start:], prominence=0.8)
+    peaks = peaks + start
+    peaks = [p for p in peaks if known[p]]
+    if len(peaks) < 2:
+        return
+    upper, lower = peaks[0], peaks[1]
+    result[_UPPER_OUTER] = points[pick[upper]]
+    result[_LOWER_OUTER] = points[pick[lower]]
+    # the chin: where the midline turns under the face (its depth falls faster than
+    # 0.7 mm per mm) below the hollow under the lower lip, or the lowest point the scan has on it
+    sulcus = lower + int(np.argmin(smooth[lower: lower + 25]))
+    below = np.arange(sulcus + 6, len(z))
+    below = below[known[below]]
+    if len(below) > 3:
+        slope = -np.gradient(smooth)
+        steep = below[slope[below] > 0.7]
+        chin = steep[0] if len(steep) else below[-1]
+        result[landmark_index("Chin middle")] = points[pick[chin]]
+    between = np.arange(upper + 1, lower)
+    if len(between) == 0:
+        return
+    gap = between[~known[between]]
+    if len(gap) >= 2:  # an open mouth: the gap's edges
+        top, bottom = gap[0] - 1, gap[-1] + 1
+        if known[top] and known[bottom]:
+            result[_UPPER_INNER] = points[pick[top]]
+            result[_LOWER_INNER] = points[pick[bottom]]
+            return
+    hollow = between[np.argmin(smooth[between])]
+    if known[hollow]:
+        result[_UPPER_INNER] = points[pick[hollow]]
+        result[_LOWER_INNER] = points[pick[hollow]]
+
+
+def _follow_mouth(result, fitted, rotation):
+    """The mouth corners move up or down with the lips' contact line found on the
+    midline (the average face's mouth sits where its own lips meet)."""
+    contact = (result[_UPPER_INNER] + result[_LOWER_INNER]) / 2
+    before = (fitted[_UPPER_INNER] + fitted[_LOWER_INNER]) / 2
+    if not (np.isfinite(contact).all() and np.isfinite(before).all()):
+        return
+    shift = ((contact - before) @ rotation)[1]
+    for corner in _CORNERS:
+        result[corner] = result[corner] + shift * rotation[:, 1]
+
+
+def project_onto_surface(result, points, rotation, radius_mm: float):
+    """Each landmark moved along the face's view axis onto the scan: the mean of the
+    scan points within `radius_mm` of it across the face; NaN where there are none."""
+    local = points @ rotation
+    tree = KDTree(np.c_[local[:, :2], np.zeros(len(local))])
+    out = np.full_like(result, np.nan)
+    for i, landmark in enumerate(result):
+        if not np.isfinite(landmark).all():
+            continue
+        here = landmark @ rotation
+        near = np.asarray(tree.query_radius(np.array([[here[0], here[1], 0.0]]), radius_mm)[0], dtype=np.int64)
+        if len(near) == 0:
+            continue
+        # the front-most layer under the landmark (a grid sees one surface per x, y)
+        z = local[near, 2]
+        front = near[z > z.max() - 3.0]
+        moved = here.copy()
+        moved[2] = local[front, 2].mean()
+        out[i] = rotation @ moved
+    return out
+
+
+def _deepest_near(result, points, rotation, indices, radius_mm):
+    """Landmarks at hollows (the inner eye corners): the most recessed scan point within
+    `radius_mm` across the face of the fitted one."""
+    local = points @ rotation
+    for i in indices:
+        if not np.isfinite(result[i]).all():
+            continue
+        here = result[i] @ rotation
+        near = np.flatnonzero(np.linalg.norm(local[:, :2] - here[:2], axis=1) < radius_mm)
+        if len(near) < 5:
+            continue
+        depth = local[near, 2]
+        deepest = near[depth <= np.quantile(depth, 0.05)]
+        result[i] = points[deepest].mean(axis=0)
+
+
+def _brow_ridges(result, points, rotation):
+    """The brows on the brow ridge: the most protruding point above the fitted one, in
+    a short vertical strip of the face."""
+    local = points @ rotation
+    for i in _BROWS:
+        if not np.isfinite(result[i]).all():
+            continue
+        here = result[i] @ rotation
+        dy = local[:, 1] - here[1]
+        strip = np.flatnonzero((np.abs(local[:, 0] - here[0]) < 2.0) & (dy > -_BROW_BELOW_MM)
+                               & (dy < _BROW_ABOVE_MM))
+        if len(strip) < 5:
+            continue
+        top = strip[local[strip, 2] >= np.quantile(local[strip, 2], 0.9)]
+        result[i] = rotation @ np.array([here[0], local[top, 1].mean(), here[2]])
+
+
+def refine(result: np.ndarray, points: np.ndarray, tree: KDTree, rotation: np.ndarray,
+           grid: np.ndarray | None) -> np.ndarray:
+    """The fitted landmarks moved to their local cues."""
+    fitted = result.copy()
+    result = result.copy()
+    _refine_tip(result, points, tree, rotation)
+    _refine_midline(result, points, rotation)
+    _follow_mouth(result, fitted, rotation)
+    before = result[list(_INNER_EYES)].copy()
+    _deepest_near(result, points, rotation, _INNER_EYES, _HOLLOW_RADIUS_MM)
+    _brow_ridges(result, points, rotation)
+    # the outer eye corners keep the eye's line: they move up or down with the inner ones
+    for inner, outer, old in zip(_INNER_EYES, _OUTER_EYES, before):
+        shift = ((result[inner] - old) @ rotation)[1]
+        if np.isfinite(shift):
+            result[outer] = result[outer] + shift * rotation[:, 1]
+    return result
