@@ -938,6 +938,17 @@ def read_mesh_colours(path) -> MeshColours:
         return result
     if len(getattr(loaded, "vertices", ())) != len(vertices):
         return result
+    try:
+        return _trimesh_colours(path, result, visual, kind)
+    except Exception as exc:  # a visual trimesh built from a damaged file
+        warnings.warn(f"{str(path)!r}: its colours cannot be read ({type(exc).__name__}: {exc}): read without "
+                      "colour", ColourWarning, stacklevel=2)
+        return MeshColours(vertices, faces)
+
+
+def _trimesh_colours(path, result: MeshColours, visual, kind) -> MeshColours:
+    """The vertex colours or the texture of a mesh trimesh read."""
+    vertices, faces = result.vertices, result.faces
     if kind == "vertex":
         colors = np.asarray(visual.vertex_colors)
         if colors.shape[:1] == (len(vertices),) and colors.shape[1] >= 3:
@@ -948,13 +959,13 @@ def read_mesh_colours(path) -> MeshColours:
         picture = getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
         if uv is None or picture is None or len(faces) == 0:
             warnings.warn(f"{str(path)!r} has a texture but no image or texture coordinates tpscore can use: "
-                          "read without colour", ColourWarning, stacklevel=2)
+                          "read without colour", ColourWarning, stacklevel=3)
             return result
         try:
             image = as_colour_image(np.asarray(picture.convert("RGB"), dtype=np.uint8))
         except Exception as exc:
             warnings.warn(f"{str(path)!r}: its texture image cannot be used ({exc}): read without colour",
-                          ColourWarning, stacklevel=2)
+                          ColourWarning, stacklevel=3)
             return result
         corner_uv = np.asarray(uv, dtype=np.float64)[faces].copy()
         corner_uv[..., 1] = 1.0 - corner_uv[..., 1]
