@@ -15,8 +15,14 @@ $(VENV)/bin/python:
 
 # Reinstall whenever a source changes; the build folder makes it incremental. The usd
 # extra is installed too, so that the tests exercise the rigs' USD output.
+# The first install says so and shows pip's steps: it compiles the C++ core, which takes
+# one to three minutes. A rebuild after an edit takes seconds and stays quiet, so that
+# `make test` prints the tests.
+FIRST_INSTALL = $(if $(wildcard $(VENV)/.installed),,yes)
 $(VENV)/.installed: $(VENV)/bin/python $(SOURCES)
-	$(PY) -m pip install --quiet ".[test,bench,usd]"
+	@$(if $(FIRST_INSTALL),echo "tpscore: the first build compiles the C++ core into $(VENV); it takes 1-3 minutes",true)
+	$(PY) -m pip install $(if $(FIRST_INSTALL),--progress-bar on,--quiet) ".[test,bench,usd]"
+	@$(if $(FIRST_INSTALL),echo "tpscore: installed",true)
 	@touch $@
 
 install: $(VENV)/.installed

@@ -246,6 +246,11 @@ CASES = [
     ("bnt-path-none", lambda t: io.read_bnt(None), ValueError, "path"),
     ("landmarks-path-none", lambda t: io.read_landmarks(None), ValueError, "path"),
     ("mesh-path-none", lambda t: io.read_mesh(None), ValueError, "path"),
+    ("mesh-colours-missing", lambda t: io.read_mesh_colours(t / "none.obj"), ValueError, "file not found"),
+    ("elastic-faces-unknown-au", lambda t: datasets.elastic_faces({"yawn": {"99": 1.0}}), ValueError,
+     "unknown action unit"),
+    ("elastic-faces-empty-name", lambda t: datasets.elastic_faces({"": {"12": 1.0}}), ValueError,
+     "non-empty strings"),
     ("load-scan-path-none", lambda t: load_scan(None), ValueError, "path"),
     ("write-path-none", lambda t: io.write_npz(None, a=np.zeros(1)), ValueError, "path"),
     ("bnt-a-folder", lambda t: io.read_bnt(t), ValueError, "is a folder"),
@@ -554,6 +559,17 @@ CLI_CASES = [
     ("pipeline-cli-elastic-text-target-subject",
      lambda f, t: ["elastic", "--face-model", str(t / "m.npz"), "--target-subject", "one", "--out", str(t / "o")],
      "argument --target-subject: must be an integer >= 0"),
+    ("pipeline-cli-adapt-three-paths",
+     lambda f, t: ["adapt", f[0], f[1], f[2], "--out", str(t / "o.obj")], "give SCAN, or TEMPLATE and SCAN"),
+    ("pipeline-cli-adapt-template-without-landmarks",
+     lambda f, t: ["adapt", f[0], f[1], "--out", str(t / "o.obj")], "--template-landmarks is needed"),
+    ("pipeline-cli-adapt-landmarks-without-template",
+     lambda f, t: ["adapt", f[1], "--template-landmarks", "x.lm3", "--out", str(t / "o.obj")],
+     "--template-landmarks needs TEMPLATE"),
+    ("pipeline-cli-elastic-unknown-procedural-expression",
+     lambda f, t: ["elastic", "--expressions", "smile,yawn", "--out", str(t / "o")], "unknown name(s) yawn"),
+    ("pipeline-cli-elastic-target-without-source",
+     lambda f, t: ["elastic", "--target", "t.npz", "--out", str(t / "o")], "--target is used with --source"),
     ("pipeline-cli-adapt-zero-levels",
      lambda f, t: ["adapt", f[0], f[1], "--template-landmarks", "x.lm3", "--out", str(t / "o.obj"), "--levels", "0"],
      "argument --levels: must be an integer >= 1, got '0'"),
@@ -782,13 +798,23 @@ def _ply_binary() -> bytes:
 
 
 # Each reader with a valid file; the fuzz cuts, flips and forges it.
+def _read_mesh_with_colours(path):
+    """A mesh read alone and with its colours: either refuses a broken file by name (a
+    colour source it cannot use is warned about, not refused)."""
+    io.read_mesh(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", io.ColourWarning)
+        io.read_mesh_colours(path)
+
+
 FORMATS = {
     "bnt": (io.read_bnt, _bnt_bytes, (14, 22, 26)),  # header boundaries: fixed part, name, value count
     "lm3": (io.read_lm3, lambda: _lm3_text().encode(), (18, 19, 32)),
     "csv": (io.read_landmarks, lambda: b"name,x,y,z\nNose tip,0,0,10\nChin middle,0,-60,-20\n", (11,)),
     "json": (io.read_landmarks, lambda: json.dumps({"Nose tip": [0, 0, 10], "Chin middle": None}).encode(), (1,)),
-    "obj": (io.read_mesh, lambda: b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", (8,)),
-    "ply": (io.read_mesh, _ply_binary, (len(b"ply\nformat binary_little_endian 1.0\n"),)),
+    "obj": (_read_mesh_with_colours, lambda: b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nf 1/1 2/2 3/3\n",
+            (8,)),
+    "ply": (_read_mesh_with_colours, _ply_binary, (len(b"ply\nformat binary_little_endian 1.0\n"),)),
     "npz": (AverageFace.load, _npz_bytes, (4, 30)),
 }
 

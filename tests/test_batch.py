@@ -20,6 +20,7 @@ import pytest
 
 import tpscore
 from tpscore import batch
+from tpscore.face import io
 from tpscore.batch import AdaptJob, Job, Progress, TransferJob
 from tpscore.batch.work import WorkSettings, read_record
 
@@ -144,7 +145,7 @@ def test_run_refuses_bad_arguments_before_starting_dask(tmp_path):
 @pytest.mark.parametrize("arguments, message", [
     ([], "give a folder DIR or --manifest CSV"),
     (["DIR", "--manifest", "m.csv"], "give a folder DIR or --manifest CSV"),
-    (["DIR", "--kind", "adapt"], "--kind adapt needs --template and --template-landmarks"),
+    (["DIR", "--kind", "adapt", "--template", "t.obj"], "--kind adapt takes --template and --template-landmarks together"),
     (["DIR", "--sources", "0-x"], "--sources must look like 0-9,12"),
     (["DIR", "--grid", "150"], "--grid must look like 150x150"),
 ])
@@ -468,3 +469,23 @@ def test_adaptation_jobs_fit_the_template_to_each_scan(scans, shared, tmp_path):
     # the fit follows the scan: within a few millimetres of the mesh it was made from
     # (the adaptation benchmark's defaults reach about 1.3 mm on these scans)
     assert record["score_source"] == "sidecar" and record["rms_mm"] < 3.0
+
+
+def test_adapt_jobs_default_to_the_shipped_template_head(tmp_path):
+    from tpscore import physics
+    from tpscore.cli.batch import _jobs
+    from tpscore.cli.main import build_parser
+
+    root = _fake_layout(tmp_path / "scans", range(2), ["N_N_0"])
+    out = tmp_path / "out"
+    args = build_parser().parse_args(["batch", str(root), "--out", str(out), "--kind", "adapt"])
+    jobs = _jobs(args)
+    assert [j.name for j in jobs] == ["bs000_N_N_0", "bs001_N_N_0"]
+    # the head is written where every worker sharing OUT reads it, with its landmarks
+    head = physics.load_template()
+    vertices, faces = io.read_mesh(jobs[0].template)
+    assert np.array_equal(vertices, head.vertices) and np.array_equal(faces, head.faces)
+    np.testing.assert_array_equal(io.read_landmarks(jobs[0].template_landmarks), head.landmarks)
+    half = build_parser().parse_args(["batch", str(root), "--out", str(out), "--kind", "adapt", "--template", "t.obj"])
+    with pytest.raises(ValueError, match="together"):
+        _jobs(half)

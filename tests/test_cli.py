@@ -131,3 +131,35 @@ def test_demo_writes_meshes_pictures_and_pages(tmp_path):
     for stem in ("smile", "frown", "jaw"):
         assert (out / f"skin_{stem}.png").stat().st_size > 1000
     assert (out / "skin_expressions.gif").stat().st_size > 1000
+
+
+def test_adapt_fits_the_shipped_template_when_none_is_given(scan_files, tmp_path, capsys):
+    from tpscore import physics
+
+    c = scan_files[2]
+    out = tmp_path / "fitted.obj"
+    assert main(["adapt", str(c), "--out", str(out), "--quiet"]) == 0
+    vertices, faces = io.read_mesh(out)
+    head = physics.load_template()
+    # the shipped head's topology, on the scan: its landmarks near the scan's
+    assert vertices.shape == head.vertices.shape and np.array_equal(faces, head.faces)
+    scan_landmarks = io.read_landmarks(c.with_suffix(".lm3"))
+    distance = np.linalg.norm(vertices[head.landmark_vertices] - scan_landmarks, axis=1)
+    assert np.nanmedian(distance) < 4.0  # mm: a landmark's place on a fitted surface, not the 10-20 before
+    # a TEMPLATE needs its landmarks, and the shipped one brings its own
+    assert main(["adapt", str(c), str(c), "--out", str(out)]) != 0
+    assert "--template-landmarks is needed" in capsys.readouterr().err
+
+
+def test_elastic_runs_on_the_procedural_faces_by_default(tmp_path):
+    out = tmp_path / "elastic"
+    assert main(["elastic", "--out", str(out), "--expressions", "smile,frown", "--no-pictures", "--quiet"]) == 0
+    with np.load(out / "elastic.npz") as data:
+        assert list(data["expression_names"]) == ["smile", "frown"]
+        assert data["cloned_vertices"].shape == (2,) + data["target_vertices"].shape
+    report = (out / "report.md").read_text()
+    assert "clone to the target's own expression" in report
+    rows = [line for line in report.splitlines() if line.startswith("| smile |")]
+    # the second table: the clone lies nearer the target's smile than its neutral face
+    clone_rms, neutral_rms = (float(v) for v in rows[1].strip("|").split("|")[1:3])
+    assert clone_rms < 0.8 * neutral_rms

@@ -26,6 +26,7 @@ from .expression import (
     PersonMismatchWarning,
     RigidAlignment,
     TextureOptions,
+    TextureWarning,
     TransferOptions,
     TransferResult,
     align_rigid,
@@ -54,10 +55,13 @@ from .csrbf import CSRBF, ConvergenceError, wendland
 from .elastic import ElasticFace, ElasticOptions, ExpressionSet, LinearMuscle, MuscleModel, SphincterMuscle
 from .face.io import (
     BntScan,
+    ColourWarning,
+    MeshColours,
     read_bnt,
     read_landmarks,
     read_lm3,
     read_mesh,
+    read_mesh_colours,
     write_bnt,
     write_landmarks,
     write_lm3,
@@ -106,6 +110,9 @@ __all__ = [
     "read_landmarks",
     "write_landmarks",
     "read_mesh",
+    "read_mesh_colours",
+    "MeshColours",
+    "ColourWarning",
     "write_mesh",
     # preprocessing
     "FaceGrid",
@@ -152,6 +159,7 @@ __all__ = [
     "transfer",
     "PersonMismatchError",
     "PersonMismatchWarning",
+    "TextureWarning",
     # rigs of morph targets
     "Rig",
     "rig",

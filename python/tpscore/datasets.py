@@ -81,6 +81,7 @@ import dataclasses
 import math
 import re
 from dataclasses import dataclass, field, fields
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -94,6 +95,9 @@ __all__ = [
     "FaceParameters",
     "face_point_cloud",
     "skin_template",
+    "ExpressionMeshes",
+    "ELASTIC_EXPRESSIONS",
+    "elastic_faces",
     "afm_faces",
     "SyntheticScan",
     "ACTION_UNITS",
@@ -906,6 +910,65 @@ def skin_template(spacing_mm: float = 2.5, *, muscles=None) -> Head:
     from the procedural average face at ``spacing_mm``: 2.5 mm gives the shipped
     ``skin_template.npz`` (about 2,600 vertices), 1.25 mm about 10,000."""
     return build_template(make_face(None, spacing_mm=spacing_mm), spacing_mm, muscles=muscles)
+
+
+#: The expressions of :func:`elastic_faces`: a name and its AU weights.
+ELASTIC_EXPRESSIONS = {"smile": {"12": 1.0}, "frown": {"4": 1.0}, "brows": {"1": 1.0, "2": 1.0},
+                       "dimpler": {"14": 1.0}, "sad_mouth": {"15": 1.0, "17": 0.5}, "stretch": {"20": 1.0}}
+
+
+class ExpressionMeshes(NamedTuple):
+    """A procedural face as a mesh, and its expressions on the same vertices.
+
+    Attributes
+    ----------
+    neutral : (n, 3) float64, mm, the face frame
+    faces : (m, 3) int64
+    landmarks : (22, 3) float64, the neutral face's Bosphorus landmarks
+    expressive : (e, n, 3) float64, each expression's vertices: every neutral vertex moved
+        with its skin, so vertex i is the same skin point in every mesh
+    names : tuple of e str
+    """
+
+    neutral: np.ndarray
+    faces: np.ndarray
+    landmarks: np.ndarray
+    expressive: np.ndarray
+    names: tuple
+
+
+def _expression_meshes(identity, expressions, spacing_mm: float) -> ExpressionMeshes:
+    identity = _as_identity(identity)
+    scan = make_face(identity, spacing_mm=spacing_mm)
+    mesh = FaceGrid.from_points(scan.points, scan.valid).mesh()
+    neutral = np.ascontiguousarray(mesh.vertices)
+    moved = [neutral + au_displacement(identity, weights, neutral[:, :2]) for weights in expressions.values()]
+    expressive = np.stack(moved) if moved else np.empty((0,) + neutral.shape)
+    return ExpressionMeshes(neutral, np.ascontiguousarray(mesh.faces), face_landmarks(identity), expressive,
+                            tuple(expressions))
+
+
+def elastic_faces(expressions=None, *, spacing_mm: float = 1.5) -> tuple[ExpressionMeshes, ExpressionMeshes]:
+    """Source and target faces for the elastic expression model: the demo's two
+    procedural people (:func:`demo_triplet`'s) as meshes, each with the same
+    expressions on its own vertices (the target's are the truth a clone is measured
+    against).
+
+    Parameters
+    ----------
+    expressions : dict, optional
+        Name -> AU weights (as :func:`make_face` takes them); default
+        :data:`ELASTIC_EXPRESSIONS`.
+    spacing_mm : float
+        The meshes' vertex spacing: 1.5 mm gives about 6,000 vertices a face.
+    """
+    expressions = dict(ELASTIC_EXPRESSIONS if expressions is None else expressions)
+    for name, weights in expressions.items():
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"expressions: names must be non-empty strings, got {name!r}")
+        _normalise_expression(weights)
+    return (_expression_meshes(random_identity(DEMO_SOURCE_SEED), expressions, spacing_mm),
+            _expression_meshes(random_identity(DEMO_TARGET_SEED), expressions, spacing_mm))
 
 
 def afm_faces(shape=(150, 150)) -> list[FaceGrid]:

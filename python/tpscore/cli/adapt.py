@@ -1,10 +1,12 @@
 """The ``tpscore adapt`` subcommand: fit a template mesh to a scan.
 
-    tpscore adapt TEMPLATE SCAN --template-landmarks T.lm3 --scan-landmarks S.lm3
+    tpscore adapt [TEMPLATE --template-landmarks T.lm3] SCAN [--scan-landmarks S.lm3]
                   --out fitted.obj [--png fit.png] [--levels 6] [--calibration similarity]
 
-TEMPLATE is any mesh trimesh reads; SCAN a mesh or a Bosphorus .bnt. The fitted mesh
-keeps the template's vertex order, count and faces, in the scan's frame.
+TEMPLATE is any mesh trimesh reads, with its landmarks; without it the shipped template
+head (the physical skin's, ``tpscore.physics.load_template()``, with its 22 landmarks)
+is fitted. SCAN is a mesh or a Bosphorus .bnt. The fitted mesh keeps the template's
+vertex order, count and faces, in the scan's frame.
 """
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ from __future__ import annotations
 from .. import render
 from ..adaptation import AdaptOptions, adapt
 from ..face import io
+from ..physics import load_template
 from .arguments import integer, read_scan_surface, scan_landmarks_path
 from .progress import StepLog
 
@@ -20,9 +23,11 @@ __all__ = ["add_adapt_parser", "adapt_command"]
 
 def add_adapt_parser(sub) -> None:
     p = sub.add_parser("adapt", help="deform a template mesh onto a scan (global RBF + multilevel CSRBF)")
-    p.add_argument("template", metavar="TEMPLATE", help="template mesh (OBJ, PLY, ...)")
-    p.add_argument("scan", metavar="SCAN", help="scan: a mesh or a Bosphorus .bnt")
-    p.add_argument("--template-landmarks", required=True, metavar="FILE", help=".lm3, .csv or .json")
+    p.add_argument("meshes", nargs="+", metavar="[TEMPLATE] SCAN",
+                   help="template mesh (OBJ, PLY, ...; default: the shipped template head) and the scan "
+                        "(a mesh or a Bosphorus .bnt)")
+    p.add_argument("--template-landmarks", metavar="FILE",
+                   help=".lm3, .csv or .json (needed with TEMPLATE; the shipped template has its own)")
     p.add_argument("--scan-landmarks", metavar="FILE", help="default: the .lm3/.csv/.json beside SCAN")
     p.add_argument("--out", required=True, metavar="MESH", help="fitted template (OBJ or PLY)")
     p.add_argument("--png", metavar="PNG", help="render scan, template and fit side by side")
@@ -37,10 +42,21 @@ def add_adapt_parser(sub) -> None:
 def adapt_command(args) -> int:
     say = StepLog(args.quiet)
 
-    template_vertices, template_faces = io.read_mesh(args.template)
-    if len(template_faces) == 0:
-        raise ValueError(f"{args.template!r}: the template has no faces; adaptation needs a mesh")
-    template_landmarks = io.read_landmarks(args.template_landmarks)
+    if len(args.meshes) > 2:
+        raise ValueError(f"give SCAN, or TEMPLATE and SCAN; got {len(args.meshes)} paths")
+    args.template, args.scan = args.meshes if len(args.meshes) == 2 else (None, args.meshes[0])
+    if args.template is None:
+        if args.template_landmarks is not None:
+            raise ValueError("--template-landmarks needs TEMPLATE (the shipped template has its own landmarks)")
+        head = load_template()
+        template_vertices, template_faces, template_landmarks = head.vertices, head.faces, head.landmark_vertices
+    else:
+        if args.template_landmarks is None:
+            raise ValueError(f"--template-landmarks is needed with TEMPLATE {args.template!r}")
+        template_vertices, template_faces = io.read_mesh(args.template)
+        if len(template_faces) == 0:
+            raise ValueError(f"{args.template!r}: the template has no faces; adaptation needs a mesh")
+        template_landmarks = io.read_landmarks(args.template_landmarks)
     scan = read_scan_surface(args.scan)
     scan_landmarks = io.read_landmarks(scan_landmarks_path(args.scan, args.scan_landmarks))
     say(f"read template ({len(template_vertices)} vertices) and scan ({len(scan[0])} vertices)")

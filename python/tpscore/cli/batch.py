@@ -1,7 +1,7 @@
 """The ``tpscore batch`` subcommand: transfers or adaptations over a whole database.
 
     tpscore batch DIR --out OUT [--au 12 4] [--sources 0-9] [--targets 0-9] [--pairs next-2]
-    tpscore batch DIR --out OUT --kind adapt --template T.obj --template-landmarks T.lm3
+    tpscore batch DIR --out OUT --kind adapt [--template T.obj --template-landmarks T.lm3]
     tpscore batch --manifest jobs.csv --out OUT
     ... [--scheduler tcp://host:8786] [--workers N] [--no-resume] [--gt-faces F.npz] [--truth]
 
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from .arguments import grid_shape, integer
 
@@ -36,7 +37,7 @@ def add_batch_parser(sub) -> None:
     p.add_argument("--magnitude", type=float, default=1.0)
     p.add_argument("--method", choices=["default", "published"], default="default")
     p.add_argument("--grid", default="150x150", help="grid size HxW (default 150x150)")
-    p.add_argument("--template", metavar="MESH", help="--kind adapt: the template mesh")
+    p.add_argument("--template", metavar="MESH", help="--kind adapt: the template mesh (default: the shipped template head)")
     p.add_argument("--template-landmarks", metavar="FILE", help="--kind adapt: its landmarks")
     p.add_argument("--subjects", metavar="LIST", help="--kind adapt: subjects whose scans to fit (default all)")
     p.add_argument("--codes", nargs="+", metavar="CODE", help="--kind adapt: expression codes to fit (default all)")
@@ -66,6 +67,22 @@ def _subjects(text, option: str):
     return out
 
 
+def _shipped_template(out) -> tuple[str, str]:
+    """The shipped template head (:func:`tpscore.physics.load_template`) written into the
+    output folder as a mesh and its landmarks, where every worker that shares the
+    folder reads it."""
+    from ..face import io
+    from ..physics import load_template
+
+    head = load_template()
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    mesh, landmarks = folder / "template_head.ply", folder / "template_head.lm3"
+    io.write_mesh(mesh, head.vertices, head.faces)
+    io.write_landmarks(landmarks, head.landmarks)
+    return str(mesh), str(landmarks)
+
+
 def _jobs(args):
     from ..batch import adapt_jobs, read_manifest, transfer_jobs
     from ..batch.jobs import transfer_options
@@ -76,8 +93,11 @@ def _jobs(args):
     if args.manifest:
         return read_manifest(args.manifest, grid=grid)
     if args.kind == "adapt":
-        if not (args.template and args.template_landmarks):
-            raise ValueError("--kind adapt needs --template and --template-landmarks")
+        if bool(args.template) != bool(args.template_landmarks):
+            raise ValueError("--kind adapt takes --template and --template-landmarks together (or neither: "
+                             "the shipped template head)")
+        if not args.template:
+            args.template, args.template_landmarks = _shipped_template(args.out)
         return adapt_jobs(args.folder, args.template, args.template_landmarks,
                           subjects=_subjects(args.subjects, "--subjects"), codes=args.codes)
     return transfer_jobs(args.folder, action_units=args.au, sources=_subjects(args.sources, "--sources"),

@@ -1,10 +1,14 @@
 """``tpscore elastic``: learn expressions on a source face and clone them onto a target.
 
+    tpscore elastic --out DIR [--expressions smile,frown,...]
     tpscore elastic --source SRC.npz --target TGT.npz --out DIR
     tpscore elastic --face-model face_model.npz [--source-subject 0] [--target-subject 1]
                     [--expressions mouthSmile_L,jawOpen,...] [--remesh-target] --out DIR
 
-Inputs (``.npz``):
+Inputs: without ``--source`` or ``--face-model``, tpscore's procedural faces
+(:func:`tpscore.datasets.elastic_faces`: the demo's two people as meshes, with smile,
+frown, brows, dimpler, sad_mouth and stretch on the neutral's vertices; the report then
+also gives each clone's distance from the target's own expression). Or ``.npz`` files:
 
 * SRC: ``neutral`` (n, 3) mm, ``faces`` (m, 3), ``landmarks`` (22, 3) (Bosphorus order, NaN
   where missing), ``expressions`` (e, n, 3) expressive meshes with the neutral's
@@ -25,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import render
+from .. import datasets, render
 from .._files import atomic_write
 from ..elastic import ElasticFace, ElasticOptions
 from ..face import io
@@ -35,19 +39,23 @@ from .progress import StepLog
 
 __all__ = ["add_elastic_parser", "elastic_command"]
 
+ICT_EXPRESSIONS = "browInnerUp_L,browDown_L,mouthSmile_L,mouthFrown_L,jawOpen,mouthPucker"
+
 
 def add_elastic_parser(subparsers) -> None:
     """Register the ``elastic`` sub-command on an argparse subparsers object."""
     p = subparsers.add_parser(
         "elastic", help="learn expressions with the elastic model and clone them onto another face")
-    source = p.add_mutually_exclusive_group(required=True)
+    source = p.add_mutually_exclusive_group()
     source.add_argument("--source", metavar="NPZ", help="source neutral, faces, landmarks and expressive meshes")
     source.add_argument("--face-model", metavar="NPZ", help="the ICT face-area model (face_model.npz)")
     p.add_argument("--target", metavar="NPZ", help="target vertices, faces, landmarks (with --source)")
     p.add_argument("--source-subject", type=integer(0), default=0, help="ICT subject of the source (default 0)")
     p.add_argument("--target-subject", type=integer(0), default=1, help="ICT subject of the target (default 1)")
-    p.add_argument("--expressions", default="browInnerUp_L,browDown_L,mouthSmile_L,mouthFrown_L,jawOpen,mouthPucker",
-                   help="comma-separated ICT expression names (with --face-model)")
+    p.add_argument("--expressions", default=None,
+                   help="comma-separated expression names: of the procedural faces (default: all of "
+                        f"{','.join(datasets.ELASTIC_EXPRESSIONS)}), or ICT names with --face-model "
+                        f"(default: {ICT_EXPRESSIONS})")
     p.add_argument("--remesh-target", action="store_true",
                    help="resample the ICT target as a 150 x 150 height-field grid (a different mesh structure)")
     p.add_argument("--fixed-factor", type=float, default=1.8,
@@ -104,6 +112,7 @@ def _subject(model: dict, subject: int) -> np.ndarray:
 def elastic_command(args) -> int:
     """Run ``tpscore elastic`` from parsed arguments; returns the exit status."""
     step = StepLog(args.quiet)
+    target_truth = None
 
     if args.face_model:
         model = _load_npz(args.face_model, ("neutral", "faces", "identity_modes", "expression_names",
@@ -113,7 +122,7 @@ def elastic_command(args) -> int:
         index = model["bosphorus_index"].astype(np.int64)
         source_neutral = _subject(model, args.source_subject)
         all_names = [str(n) for n in model["expression_names"]]
-        names = [n.strip() for n in args.expressions.split(",") if n.strip()]
+        names = [n.strip() for n in (args.expressions or ICT_EXPRESSIONS).split(",") if n.strip()]
         unknown = [n for n in names if n not in all_names]
         if unknown or not names:
             raise ValueError(f"--expressions: unknown name(s) {', '.join(unknown) or '(none given)'}; "
@@ -127,6 +136,21 @@ def elastic_command(args) -> int:
         if args.remesh_target:
             target_vertices, target_faces, _, _ = height_field_remesh(target_vertices, faces, target_landmarks[13])
         step(f"built ICT subjects {args.source_subject} (source) and {args.target_subject} (target)")
+    elif args.source is None:
+        known = dict(datasets.ELASTIC_EXPRESSIONS)
+        names = [n.strip() for n in (args.expressions or ",".join(known)).split(",") if n.strip()]
+        unknown = [n for n in names if n not in known]
+        if unknown or not names:
+            raise ValueError(f"--expressions: unknown name(s) {', '.join(unknown) or '(none given)'}; "
+                             f"known: {', '.join(known)}")
+        if args.target:
+            raise ValueError("--target is used with --source; the procedural faces bring their own target")
+        src, tgt = datasets.elastic_faces({n: known[n] for n in names})
+        source_neutral, faces, source_landmarks, examples = src.neutral, src.faces, src.landmarks, src.expressive
+        target_vertices, target_faces, target_landmarks = tgt.neutral, tgt.faces, tgt.landmarks
+        target_truth = tgt.expressive
+        step(f"built the procedural source and target faces ({len(source_neutral)} and "
+             f"{len(target_vertices)} vertices, {len(names)} expressions)")
     else:
         if not args.target:
             raise ValueError("--target is needed with --source")
@@ -167,6 +191,15 @@ def elastic_command(args) -> int:
               for n, m, r, x in zip(names, learned.motion_rms_mm, learned.rms_mm, learned.max_mm)]
     lines += ["", f"Storage: parameters + basis / per-vertex displacements = {storage['ratio']:.3f}; "
                   f"parameters only = {storage['ratio_parameters_only']:.4f}."]
+    if target_truth is not None:
+        # the procedural target wears each expression too: the clone's distance from it
+        def rms(a, b):
+            return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=-1))))
+
+        lines += ["", "| expression | clone to the target's own expression RMS (mm) | target neutral to it (mm) |",
+                  "|---|---:|---:|"]
+        lines += [f"| {n} | {rms(cloned[i], target_truth[i]):.2f} | {rms(target_vertices, target_truth[i]):.2f} |"
+                  for i, n in enumerate(names)]
     atomic_write(out / "report.md", ("\n".join(lines) + "\n").encode("utf-8"))
     if not args.no_pictures:
         source_camera = render.fit_camera([source.vertices], width=320, height=380)

@@ -29,7 +29,7 @@ from .alignment import Realigned, align_rigid, fit_mirror_symmetry, residual_rig
 from .cut_motion import CutMotion, moved_openings, register_cut
 from .mirror import Coverage, MirroredMotion
 from .registration import DenseMotion, MotionOptions, RegistrationGrid, prepare_registration, register_surfaces
-from .texture import TextureOptions, track_texture
+from .texture import TextureOptions, TextureWarning, track_texture
 
 __all__ = ["ControlPointMotion", "ExpressionModel", "PersonMismatchWarning", "PersonMismatchError", "place_control_points", "Extended",
            "align_expressive", "still_weight", "dense_motion", "mirror_plane", "mirrored", "coverage",
@@ -217,6 +217,10 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
         surface = second_thread.submit(source_expressive.surface)
         if source_neutral.grid.image is not None or source_expressive.grid.image is not None:
             texture = track_texture(source_neutral.grid, source_expressive.grid, texture_options)
+        else:
+            warnings.warn("neither source scan has a colour image: the motion comes from the geometry "
+                          "alone, which follows the skin less closely (give each scan its image, a "
+                          "textured mesh or vertex colours)", TextureWarning, stacklevel=2)
         if while_registering is not None:
             while_registering()
         grid = source_neutral.grid

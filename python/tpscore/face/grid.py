@@ -37,10 +37,13 @@ from .._threads import blas_on_one_thread, num_threads
 from .._validation import MAX_COORDINATE, as_array, as_path, as_positive
 from ..geometry import FrameTransform
 from ..mesh import grid_triangles
+from ..raster import interpolate_pixels, rasterise
 from .detect import LandmarksDetectedWarning, detect_landmarks
 from .image import as_colour_image as _as_colour_image
 from .image import check_image_fits, sample_image
-from .io import BntScan, landmark_file_beside, read_bnt, read_image, read_landmarks, read_mesh
+
+from .io import (BntScan, ColourWarning, MeshColours, landmark_file_beside, read_bnt, read_image,
+                 read_landmarks, read_mesh_colours)
 from .landmarks import LANDMARK_NAMES, N_LANDMARKS, as_landmarks, empty_landmarks
 from .pose import scan_pose
 
@@ -448,7 +451,13 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
     ----------
     path : str or PathLike
         A Bosphorus ``.bnt``, or any mesh or point cloud trimesh reads (its vertices
-        are the points; faces are not used).
+        are the points). A mesh's colours come with it (:func:`read_mesh_colours`): an
+        OBJ's texture through its ``.mtl`` (a texture whose u,v map the face's x, y with
+        square pixels, as :func:`write_textured_obj` writes, is used as it is), vertex
+        colours of a PLY, GLB or OBJ, or another texture, rendered along the viewing axis
+        into an image of 0.3 mm pixels; ``FaceGrid.image`` and ``uv`` then feed the
+        texture tracker as a ``.bnt``'s image does. A colour source that cannot be used
+        gives a :class:`~tpscore.face.io.ColourWarning` and a scan without colour.
     landmarks_path : str or PathLike, optional
         ``.lm3``, ``.csv`` or ``.json``, or ``"auto"`` to detect them from the scan
         (:func:`~tpscore.face.detect.detect_landmarks`). By default the file beside
@@ -487,7 +496,8 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
     else:
         if image_path is not None:
             raise ValueError(f"image_path: only a .bnt scan carries the u,v an image needs, not {str(path)!r}")
-        source, _ = read_mesh(path)
+        coloured = read_mesh_colours(path)
+        source = coloured.vertices
     if not isinstance(detect, (bool, np.bool_)):
         raise ValueError(f"detect: must be True or False, got {detect!r}")
     auto = isinstance(landmarks_path, str) and landmarks_path == "auto"
@@ -508,8 +518,11 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
             landmarks = None
     else:
         landmarks = read_landmarks(landmarks_path)
+    uv = None
     try:
-        grid = resample_scan(source, landmarks, shape, max_gap_mm=max_gap_mm)
+        if not isinstance(source, BntScan):
+            image, uv = _mesh_colour_image(coloured, landmarks, repr(str(path)))
+        grid = resample_scan(source, landmarks, shape, max_gap_mm=max_gap_mm, uv=uv)
     except ValueError as exc:
         raise ValueError(f"{str(path)!r}: {exc}") from None
     if image is not None:
@@ -522,6 +535,87 @@ def _detect(source, path):
         return detect_landmarks(source)
     except ValueError as exc:
         raise ValueError(f"{str(path)!r}: landmarks cannot be detected: {exc}") from None
+
+
+#: The size of a pixel of the image a mesh's colours are rendered into (mm): finer than
+#: a face scanner's camera sees the skin, so that the texture tracker loses no detail.
+MESH_COLOUR_PIXEL_MM = 0.3
+#: The most pixels across that image: a mesh far wider than a face is rendered coarser.
+MAX_MESH_COLOUR_PIXELS = 2048
+
+
+def _mesh_colour_image(coloured: MeshColours, landmarks, where: str):
+    """The colour image and per-vertex u,v a mesh's colours give a face grid, or
+    (None, None) for a mesh without colour.
+
+    A texture whose u,v are one per vertex and map the face's x, y onto the image with
+    nearly square pixels (as a ``.bnt``'s image, or :func:`write_textured_obj`'s output)
+    is used as it is. Other colours (vertex colours, a texture atlas with seams) are
+    rendered orthographically along the viewing axis into an image over the face's
+    x, y at :data:`MESH_COLOUR_PIXEL_MM`, and each vertex's u,v is its place in it: the
+    texture tracker then sees the mesh as it sees a scanner's image.
+    """
+    vertices, faces = coloured.vertices, coloured.faces
+    if coloured.image is None and coloured.vertex_colors is None:
+        return None, None
+    if coloured.image is not None:
+        vertex_uv = np.full((len(vertices), 2), np.nan)
+        vertex_uv[faces.reshape(-1)] = coloured.corner_uv.reshape(-1, 2)
+        used = np.isfinite(vertex_uv[:, 0])
+        if np.count_nonzero(used) >= 3 and np.abs(coloured.corner_uv - vertex_uv[faces]).max() < 1e-9:
+            # vertices no triangle uses (a scan's isolated points) take the u,v of the
+            # affine map from x, y the others follow
+            if not used.all():
+                design = np.column_stack([vertices[used, :2], np.ones(np.count_nonzero(used))])
+                affine = np.linalg.lstsq(design, vertex_uv[used], rcond=None)[0]
+                vertex_uv[~used] = np.column_stack([vertices[~used, :2], np.ones(np.count_nonzero(~used))]) @ affine
+            try:
+                check_image_fits(coloured.image, vertices, vertex_uv, np.ones(len(vertices), bool), where)
+                return coloured.image, vertex_uv
+            except ValueError:
+                pass  # an atlas: rendered below
+    # the viewing axis is the canonical frame's z: a scan in another pose is turned first
+    pose = scan_pose(empty_landmarks() if landmarks is None else as_landmarks(landmarks))
+    seen = vertices if pose is None or pose.canonical else pose.to_canonical(vertices)
+    extent = np.ptp(seen[:, :2], axis=0)
+    if not (extent > 0).all():
+        return None, None
+    pixel_mm = max(MESH_COLOUR_PIXEL_MM, extent.max() / MAX_MESH_COLOUR_PIXELS)
+    width, height = (int(np.ceil(e / pixel_mm)) + 1 for e in extent)
+    origin = np.array([seen[:, 0].min(), seen[:, 1].max()])
+    pixels = np.column_stack([seen[:, 0] - origin[0], origin[1] - seen[:, 1]]) / pixel_mm + 0.5
+    if len(faces):
+        triangles = faces
+    else:
+        try:  # a coloured point cloud: triangulated over x, y
+            triangles = Delaunay(pixels).simplices.astype(np.int64)
+        except QhullError:
+            return None, None
+    if coloured.image is not None:
+        # each corner its own vertex, so that seams keep both sides' u,v
+        corners = triangles.reshape(-1)
+        triangle, barycentric = rasterise(pixels[corners], seen[corners, 2], np.arange(len(corners)).reshape(-1, 3),
+                                          width, height)
+        uv = interpolate_pixels(coloured.corner_uv.reshape(-1, 2), np.arange(len(corners)).reshape(-1, 3),
+                                triangle, barycentric)
+        colours = sample_image(coloured.image, np.nan_to_num(uv))
+    else:
+        triangle, barycentric = rasterise(pixels, seen[:, 2], triangles, width, height)
+        colours = interpolate_pixels(coloured.vertex_colors.astype(np.float64), triangles, triangle, barycentric)
+    covered = triangle >= 0
+    if not covered.any():
+        warnings.warn(f"{where}: its colours cover no pixel of the face's image: read without colour",
+                      ColourWarning, stacklevel=3)
+        return None, None
+    # pixels beside the surface take the nearest covered colour, so that sampling at
+    # the rim does not blend in black
+    from scipy.ndimage import distance_transform_edt
+
+    nearest = distance_transform_edt(~covered, return_distances=False, return_indices=True)
+    colours = colours[nearest[0], nearest[1]]
+    image = np.clip(np.round(colours), 0, 255).astype(np.uint8)
+    vertex_uv = pixels / np.array([width, height], dtype=np.float64)
+    return image, vertex_uv
 
 
 @blas_on_one_thread
