@@ -41,7 +41,6 @@ from ..raster import interpolate_pixels, rasterise
 from .detect import LandmarksDetectedWarning, detect_landmarks
 from .image import as_colour_image as _as_colour_image
 from .image import check_image_fits, sample_image
-
 from .io import (BntScan, ColourWarning, MeshColours, landmark_file_beside, read_bnt, read_image,
                  read_landmarks, read_mesh_colours)
 from .landmarks import LANDMARK_NAMES, N_LANDMARKS, as_landmarks, empty_landmarks
