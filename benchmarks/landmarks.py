@@ -3,7 +3,10 @@ Bosphorus-format scans: per landmark, the distance to the true landmarks (the sc
 ``_gt.npz`` sidecars, ``landmarks_true``), for development subjects (0-9, the ones
 the detector was tuned on) and held-out subjects (10-19), neutral and expressive.
 
-    python benchmarks/landmarks.py [--scans /tmp/fid25/scans] [--out bench-output/landmarks.md]
+    python benchmarks/landmarks.py [--scans FOLDER] [--out bench-output/landmarks.md]
+
+The scans are made with ../shared/tools/make_scans.py into bench-output/scans_landmarks
+(or --scans) where missing.
 """
 from __future__ import annotations
 
@@ -16,6 +19,9 @@ import numpy as np
 from tpscore import detect_landmarks
 from tpscore.face.io import read_bnt
 from tpscore.face.landmarks import LANDMARK_NAMES
+
+from fidelity import ensure_scans
+from shared_data import REPOSITORY, shared_dir
 
 NEUTRAL = ("N_N_0",)
 EXPRESSIVE = ("LFAU_25_0", "UFAU_43_0", "UFAU_44_0", "UFAU_6_0", "E_HAPPY_0", "E_SADNESS_0",
@@ -55,9 +61,15 @@ def table(errors: np.ndarray) -> list[str]:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scans", type=Path, default=Path("/tmp/fid25/scans"))
-    parser.add_argument("--out", type=Path, default=Path("bench-output/landmarks.md"))
+    parser.add_argument("--scans", type=Path, default=REPOSITORY / "bench-output" / "scans_landmarks")
+    parser.add_argument("--out", type=Path, default=REPOSITORY / "bench-output" / "landmarks.md")
     args = parser.parse_args(argv)
+    shared = shared_dir()
+    if shared is not None:
+        ensure_scans(shared, args.scans, list(range(20)), codes=[*NEUTRAL, *EXPRESSIVE])
+    elif not args.scans.is_dir():
+        print("skipped: needs ../shared (make_scans.py) or --scans with the generated scans")
+        return
     start = time.perf_counter()
     out = ["# Automatic landmarks: error against the true landmarks (mm)", ""]
     count = 0

@@ -8,7 +8,10 @@ transferred from the three kinds of input and scored against the target's ground
 sidecars (tpscore.batch.score_with_sidecars, the arithmetic of
 ../shared/tools/score_transfer.py)::
 
-    python benchmarks/mesh_colours.py [--scans /tmp/fid25/scans] [--code LFAU_25_0] [--pairs 6]
+    python benchmarks/mesh_colours.py [--scans FOLDER] [--code LFAU_25_0] [--pairs 6]
+
+(the scans are made with ../shared/tools/make_scans.py into bench-output/scans_colours, or
+--scans, where missing)
 
 Writes the table to stdout (and to bench-output/mesh_colours.md).
 """
@@ -62,15 +65,18 @@ def convert(bnt: Path, out: Path) -> tuple[Path, Path, Path]:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scans", type=Path, default=Path("/tmp/fid25/scans"))
+    parser.add_argument("--scans", type=Path, default=REPOSITORY / "bench-output" / "scans_colours")
     parser.add_argument("--code", default="LFAU_25_0", choices=sorted(REQUESTS))
     parser.add_argument("--pairs", type=int, default=6, help="source s -> target s + 1, s = 0, 1, ...")
     parser.add_argument("--out", type=Path, default=REPOSITORY / "bench-output")
     args = parser.parse_args(argv)
     shared = shared_dir()
-    if shared is None or not args.scans.is_dir():
-        print("skipped: needs the shared folder and the development scans", file=sys.stderr)
+    if shared is None:
+        print("skipped: needs the shared folder (the scans' generator and the face model)", file=sys.stderr)
         return 0
+    from fidelity import ensure_scans
+
+    ensure_scans(shared, args.scans, list(range(args.pairs + 1)), codes=["N_N_0", args.code])
     import tpscore
     from tpscore.batch import score_with_sidecars
 
