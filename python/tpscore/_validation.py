@@ -13,6 +13,7 @@ import os
 import numpy as np
 
 __all__ = [
+    "Immutable",
     "as_points",
     "as_values",
     "as_faces",
@@ -33,6 +34,19 @@ __all__ = [
     "MAX_POINTS",
     "MAX_COORDINATE",
 ]
+
+class Immutable:
+    """Base of the fitted kernel objects, which never change once made from validated
+    inputs: a copy, shallow or deep, is the object itself."""
+
+    __slots__ = ()
+
+    def __copy__(self):
+        return self
+
+    def __deepcopy__(self, memo):
+        return self
+
 
 # A dense temporary larger than this (in float64 elements, 2 GiB) is refused or chunked.
 MAX_DENSE_ELEMENTS = 2**28

@@ -22,7 +22,8 @@ import numpy as np
 
 from . import _core
 from .spatial import _pairs_beyond
-from ._validation import MAX_SPARSE_ENTRIES, as_array, as_points, as_positive, as_values, check_result_size, gib
+from ._validation import (Immutable, MAX_SPARSE_ENTRIES, as_array, as_points, as_positive, as_values,
+                          check_result_size, gib)
 
 __all__ = ["CSRBF", "ConvergenceError", "wendland"]
 
@@ -55,7 +56,7 @@ def wendland(r):
     return np.where(r < 1, (1 - r) ** 4 * (4 * r + 1), 0.0)
 
 
-class CSRBF:
+class CSRBF(Immutable):
     """A field fitted to values at centres with compactly supported Wendland RBFs.
 
     Fitting (all in the compiled core, threaded where it pays):
@@ -195,12 +196,6 @@ class CSRBF:
         centres, values, normals = self._inputs
         return _refit, (centres, values, self._support, normals, self._quadric, self._smoothing,
                         self._preconditioner, self._tolerance, self._max_iterations)
-
-    def __copy__(self):
-        return self  # immutable
-
-    def __deepcopy__(self, memo):
-        return self
 
     def __call__(self, points) -> np.ndarray:
         """Evaluate the field.

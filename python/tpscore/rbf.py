@@ -44,7 +44,7 @@ import math
 import numpy as np
 
 from . import _core
-from ._validation import MAX_DENSE_ELEMENTS, as_points, as_positive, as_values, check_result_size
+from ._validation import Immutable, MAX_DENSE_ELEMENTS, as_points, as_positive, as_values, check_result_size
 
 __all__ = ["RBF", "TPS", "RBF_KERNELS"]
 
@@ -200,7 +200,7 @@ def _check_geometry(centres: np.ndarray, allow_coincident: bool) -> None:
             "[1 x y z]); a 3D RBF needs centres that span a volume")
 
 
-class RBF:
+class RBF(Immutable):
     """A dense radial basis function interpolant with an affine part, in 3D.
 
     ``f(x) = [1 x y z] @ affine + sum_i weights[i] * phi(|x - centres[i]|)``, fitted so
@@ -275,12 +275,6 @@ class RBF:
         # the fit is deterministic: refitting the same inputs with the same build gives
         # the same model, to the bit (a pickle ships the inputs, not the compiled object)
         return _refit, (type(self), *self._inputs)
-
-    def __copy__(self):
-        return self  # immutable: a copy is the object itself
-
-    def __deepcopy__(self, memo):
-        return self
 
     def _fit(self, centres: np.ndarray, values: np.ndarray, kernel: str, smoothing: float,
              epsilon: float) -> None:

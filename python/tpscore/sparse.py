@@ -13,7 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import _core
-from ._validation import as_array, as_positive, check_finite
+from ._validation import Immutable, as_array, as_positive, check_finite
 
 __all__ = ["PatternCholesky", "SparseCholesky", "grid_nested_dissection"]
 
@@ -91,7 +91,7 @@ def _as_symmetric_csc_lower(matrix, name: str, symmetry_tolerance: float):
     return lower
 
 
-class SparseCholesky:
+class SparseCholesky(Immutable):
     """A sparse symmetric positive-definite matrix, factorised once for repeated solves.
 
     The factorisation is P A P^T = L D L^T (a square-root-free Cholesky) with an
@@ -137,12 +137,6 @@ class SparseCholesky:
 
     def __reduce__(self):
         return _refactorise, (self._lower,)
-
-    def __copy__(self):
-        return self  # immutable
-
-    def __deepcopy__(self, memo):
-        return self
 
     @property
     def n(self) -> int:

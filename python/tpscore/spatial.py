@@ -12,7 +12,7 @@ from typing import NamedTuple
 import numpy as np
 
 from . import _core
-from ._validation import (MAX_DENSE_ELEMENTS, MAX_POINTS, MAX_SPARSE_ENTRIES, as_count, as_faces, as_points,
+from ._validation import (Immutable, MAX_DENSE_ELEMENTS, MAX_POINTS, MAX_SPARSE_ENTRIES, as_count, as_faces, as_points,
                           check_rows, gib, row_count)
 
 __all__ = [
@@ -95,7 +95,7 @@ def _radius(value, name: str = "r") -> float:
     return radius
 
 
-class KDTree:
+class KDTree(Immutable):
     """Exact nearest-neighbour and radius queries over a fixed set of 3D points.
 
     A static kd-tree (median split on the widest axis, leaves of ``leaf_size`` points)
@@ -138,12 +138,6 @@ class KDTree:
     def __reduce__(self):
         # the tree is rebuilt from its points: the same build gives the same tree
         return KDTree, (self._points, self._leaf_size)
-
-    def __copy__(self):
-        return self  # immutable
-
-    def __deepcopy__(self, memo):
-        return self
 
     @property
     def points(self) -> np.ndarray:
@@ -342,7 +336,7 @@ class RayHits(NamedTuple):
     """(m, 3) the hit's weights on the triangle's corners, NaN for a miss."""
 
 
-class MeshSurface:
+class MeshSurface(Immutable):
     """A triangle mesh prepared for exact closest-point and ray queries.
 
     Builds a bounding-volume hierarchy over the triangles once; queries then cost about
@@ -374,12 +368,6 @@ class MeshSurface:
 
     def __reduce__(self):
         return MeshSurface, (self._vertices, self._faces)
-
-    def __copy__(self):
-        return self  # immutable
-
-    def __deepcopy__(self, memo):
-        return self
 
     @property
     def vertices(self) -> np.ndarray:
