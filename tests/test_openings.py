@@ -145,7 +145,7 @@ def test_a_lid_rim_pulls_across_the_eye_but_leaves_its_slide_along_it_free(scans
     eye = find_openings(face)["left eye"]
     grid = face.grid
     rim_from = grid.points.reshape(-1, 3)[eye.rim(grid.points, grid.mask, "bottom")]
-    along, up = eye._axes()
+    along, up = eye.axes()
     rim_to = rim_from.copy()
     rim_to[:, :2] += 2.0 * along + 1.0 * up
     correction = fit_local_correction(eye, "bottom", grid.points[grid.mask], lambda p: np.zeros(np.shape(p)),

@@ -130,7 +130,7 @@ def fit_local_correction(opening: Opening, side: str, points, motion, surface: M
         # slide comes from the skin beside it.
         rim_basis = lattice.basis(rim_from[:, :2]).multiply(correction.weight(rim_from)[:, None]).tocsr()
         residual = rim_to - rim_from - motion(rim_from)
-        along_chord = np.append(opening._axes()[0], 0.0)
+        along_chord = np.append(opening.axes()[0], 0.0)
         across = np.eye(3) - np.outer(along_chord, along_chord)
         gram = rim_basis.T @ rim_basis
         fixed = fixed + RIM_WEIGHT * sp.bmat([[across[a, b] * gram for b in range(3)] for a in range(3)])

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 from scipy.spatial import Delaunay, QhullError
 
 from .._threads import blas_on_one_thread, num_threads
@@ -608,8 +609,6 @@ def _mesh_colour_image(coloured: MeshColours, landmarks, where: str):
         return None, None
     # pixels beside the surface take the nearest covered colour, so that sampling at
     # the rim does not blend in black
-    from scipy.ndimage import distance_transform_edt
-
     nearest = distance_transform_edt(~covered, return_distances=False, return_indices=True)
     colours = colours[nearest[0], nearest[1]]
     image = np.clip(np.round(colours), 0, 255).astype(np.uint8)

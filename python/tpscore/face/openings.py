@@ -89,19 +89,21 @@ class Opening:
         """Distance between the corners (mm)."""
         return float(np.linalg.norm(self.corners[1] - self.corners[0]))
 
-    def _axes(self):
+    def axes(self) -> tuple[np.ndarray, np.ndarray]:
+        """The chord's unit directions in the x-y plane: along it (a), and across it,
+        pointing up (+y: b)."""
         along = (self.corners[1] - self.corners[0]) / self.width
-        return along, np.array([-along[1], along[0]])  # the second axis points up (+y)
+        return along, np.array([-along[1], along[0]])
 
     def coordinates(self, points) -> tuple[np.ndarray, np.ndarray]:
         """The chord coordinates (a, b) of points (..., >=2)."""
-        along, up = self._axes()
+        along, up = self.axes()
         offset = np.asarray(points, dtype=np.float64)[..., :2] - self.corners[0]
         return offset @ along / self.width, offset @ up
 
     def points_at(self, a, b) -> np.ndarray:
         """x, y (..., 2) of chord coordinates a, b."""
-        along, up = self._axes()
+        along, up = self.axes()
         a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
         return self.corners[0] + (a * self.width)[..., None] * along + b[..., None] * up
 
@@ -196,13 +198,14 @@ def _grid_xy(points, mask) -> np.ndarray:
     return np.stack([rows, columns, np.ones_like(rows)], axis=-1) @ coefficients
 
 
-def _hole_edges(opening: Opening, points, mask):
+def _hole_edges(opening: Opening, points, mask, xy=None):
     """The hole a grid shows at the opening: its top and bottom edge per knot (NaN
-    where there is none) and the hole's grid mask (None without one)."""
+    where there is none) and the hole's grid mask (None without one). ``xy``: the
+    grid's :func:`_grid_xy`, when the caller has it already."""
     nothing = np.full(N_KNOTS, np.nan)
     if not mask.any():
         return nothing, nothing.copy(), None
-    a, b = opening.coordinates(_grid_xy(points, mask))
+    a, b = opening.coordinates(_grid_xy(points, mask) if xy is None else xy)
     offset = b - opening.line_at(a)
     up, down = (share * opening.width for share in opening.window[:2])
     candidates = ~mask & (a > -0.05) & (a < 1.05) & (offset < up) & (offset > -down)
@@ -257,6 +260,7 @@ def find_openings(face) -> dict[str, Opening]:
     grid = face.grid
     landmarks = grid.landmarks
     found = {}
+    xy = _grid_xy(grid.points, grid.mask) if grid.mask.any() else None  # one fit for the three openings
 
     def corner(name):
         point = landmarks[landmark_index(name)]
@@ -267,7 +271,7 @@ def find_openings(face) -> dict[str, Opening]:
         if inner is not None and outer is not None and np.linalg.norm(inner - outer) > 1.0:
             corners = np.array(sorted([inner, outer], key=lambda p: p[0]))
             found[f"{side} eye"] = _with_hole(Opening(f"{side} eye", corners, np.zeros(N_KNOTS), np.full(N_KNOTS, np.nan),
-                                                      np.full(N_KNOTS, np.nan), OPENING_WINDOWS["eye"]), grid)
+                                                      np.full(N_KNOTS, np.nan), OPENING_WINDOWS["eye"]), grid, xy)
     right, left = corner("Right mouth corner"), corner("Left mouth corner")
     if right is not None and left is not None and np.linalg.norm(right - left) > 1.0:
         corners = np.array(sorted([right, left], key=lambda p: p[0]))
@@ -281,17 +285,17 @@ def find_openings(face) -> dict[str, Opening]:
             a = float(np.clip(a, 0.2, 0.8))
             knots = mouth.knots
             mouth = replace(mouth, line=float(b) * knots * (1.0 - knots) / (a * (1.0 - a)))
-        mouth = _with_hole(mouth, grid)
+        mouth = _with_hole(mouth, grid, xy)
         if not np.isfinite(mouth.top).any():
             mouth = replace(mouth, line=_crease(face, mouth))
         found["mouth"] = mouth
     return found
 
 
-def _with_hole(opening: Opening, grid) -> Opening:
+def _with_hole(opening: Opening, grid, xy=None) -> Opening:
     """The opening with the hole the grid shows at it; its line then runs through the
     hole's middle (and to the corners)."""
-    top, bottom, _ = _hole_edges(opening, grid.points, grid.mask)
+    top, bottom, _ = _hole_edges(opening, grid.points, grid.mask, xy)
     middle = 0.5 * (top + bottom)
     known = np.isfinite(middle)
     line = opening.line
