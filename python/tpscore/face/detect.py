@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from .._validation import as_array
+from ..geometry import similarity_transform
 from ..spatial import KDTree
 from .landmarks import N_LANDMARKS, landmark_index
 from . import detect_cues as _cues
@@ -93,15 +94,10 @@ def _scan_points(scan) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def _similarity(source: np.ndarray, target: np.ndarray, scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
-    """s, R, t minimising |s R source + t - target|^2 (Umeyama)."""
-    ms, mt = source.mean(axis=0), target.mean(axis=0)
-    a, b = source - ms, target - mt
-    u, sv, vt = np.linalg.svd(b.T @ a)
-    d = np.ones(3)
-    d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
-    rotation = (u * d) @ vt
-    s = float((sv * d).sum() / (a ** 2).sum()) if scale else 1.0
-    return s, rotation, mt - s * rotation @ ms
+    """s, R, t minimising |s R source + t - target|^2 (:func:`tpscore.geometry.similarity_transform`)."""
+    matrix = similarity_transform(source, target, scale=scale).matrix
+    s = float(np.cbrt(np.linalg.det(matrix[:3, :3]))) if scale else 1.0
+    return s, matrix[:3, :3] / s, matrix[:3, 3]
 
 
 def _icp(model: np.ndarray, tree: KDTree, targets: np.ndarray, s: float, rotation: np.ndarray,
