@@ -52,8 +52,20 @@ demo: install
 # fidelity benchmark (bench-output/fidelity.md), a transfer's cost against grid and scan
 # size (bench-output/transfer_scale.md) and the batch engine's throughput
 # (bench-output/batch_throughput.md); all skip what needs ../shared if absent.
+BENCH_PYTEST = $(PY) -m pytest -q -p no:cacheprovider -o python_files="bench_*.py" \
+	--benchmark-columns=min,median,mean,rounds --benchmark-sort=name
+# The kernels' benchmarks again at each lower instruction set the CPU has (NumPy's own
+# AVX-512 paths off as well, as on a CPU without them): bench-output/ratios-<set>.md.
+KERNEL_BENCHMARKS ?= benchmarks/bench_rbf.py benchmarks/bench_csrbf.py benchmarks/bench_spatial.py \
+	benchmarks/bench_sparse.py benchmarks/bench_lattice.py benchmarks/bench_mesh.py
+
 bench: install
-	$(PY) -m pytest benchmarks -q -p no:cacheprovider -o python_files="bench_*.py" --benchmark-columns=min,median,mean,rounds --benchmark-sort=name
+	$(BENCH_PYTEST) benchmarks
+	@for level in $$($(LOWER_SIMD)); do \
+		echo "kernel benchmarks with TPSCORE_SIMD=$$level"; \
+		TPSCORE_SIMD=$$level NPY_DISABLE_CPU_FEATURES="$(NUMPY_WITHOUT_AVX512)" \
+			$(BENCH_PYTEST) $(KERNEL_BENCHMARKS) || exit 1; \
+	done
 	$(PY) benchmarks/fidelity.py $(FIDELITY_ARGS)
 	$(PY) benchmarks/transfer_scale.py
 	$(PY) benchmarks/batch_throughput.py

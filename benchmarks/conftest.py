@@ -10,8 +10,10 @@ Benchmarks may also record, in ``benchmark.extra_info``, the flops they perform
 ("peak_flops"); each benchmark with "flops" is then reported against its arithmetic
 limit, flops / (peak_flops / that benchmark's minimum time), from the same run.
 
-The tables are printed and written to bench-output/ratios.md, headed by the machine
-and the date.
+The tables are printed and written to bench-output/ratios.md, headed by the machine,
+the instruction set the kernels ran (``TPSCORE_SIMD`` lowers it) and the date; a run at
+a set below the CPU's best writes bench-output/ratios-<set>.md instead, so that
+``make bench`` keeps one table per instruction set the CPU offers.
 """
 from __future__ import annotations
 
@@ -84,8 +86,21 @@ def _machine_line(session):
     count = cpu.get("count") or os.cpu_count()
     flags = set(cpu.get("flags", []))
     simd = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "no AVX2"
-    return (f"Machine: {brand}, {count} logical CPUs, {simd}; Python {platform.python_version()}; "
+    return (f"Machine: {brand}, {count} logical CPUs, {simd}; kernels at {_kernel_level()}"
+            f"{' (set by TPSCORE_SIMD)' if _lowered() else ''}, NumPy's disabled features: "
+            f"{os.environ.get('NPY_DISABLE_CPU_FEATURES') or 'none'}; Python {platform.python_version()}; "
             f"run {datetime.date.today().isoformat()}.")
+
+
+def _kernel_level() -> str:
+    """The instruction set the compiled kernels run: the CPU's best, or lower by TPSCORE_SIMD."""
+    from tpscore import _core
+    return _core.simd_level()
+
+
+def _lowered() -> bool:
+    """Whether TPSCORE_SIMD chose the level (the run then writes a table of its own)."""
+    return bool(os.environ.get("TPSCORE_SIMD"))
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
@@ -108,7 +123,8 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
     terminalreporter.write_sep("=", "tpscore speed-up (other min / tpscore min)")
     terminalreporter.write_line(text)
     os.makedirs(OUTPUT_DIR, exist_ok=True)
-    with open(os.path.join(OUTPUT_DIR, "ratios.md"), "w") as fh:
+    name = f"ratios-{_kernel_level()}.md" if _lowered() else "ratios.md"
+    with open(os.path.join(OUTPUT_DIR, name), "w") as fh:
         fh.write(text + "\n")
 
 
