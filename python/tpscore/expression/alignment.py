@@ -303,11 +303,6 @@ def stable_weight(points, landmarks) -> np.ndarray:
     return np.where(np.isfinite(weight), weight, 0.0)
 
 
-#: The residual rigid motion's final fit keeps the pairs within 3 times this of it
-#: (mm): about twice the registration's noise on still skin.
-MODE_SCALE_MM = 0.3
-
-
 #: The residual rigid motion's final fits keep the pairs within 3 times this of it
 #: (mm): about twice the registration's noise on still skin.
 MODE_SCALE_MM = 0.3

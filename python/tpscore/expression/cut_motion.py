@@ -27,7 +27,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ..face.landmarks import N_LANDMARKS
-from ..face.openings import Opening, find_openings, opening_sides
+from ..face.openings import Opening, find_openings, grid_xy, opening_sides
 from ..geometry import off_surface, robust_scale, tukey_weights
 from ..lattice import BSplineLattice
 from ..mesh import face_normals
@@ -65,8 +65,9 @@ def moved_openings(openings: dict[str, Opening], expressive_grid) -> list[Openin
     """The neutral face's openings that the expressive grid (in the same frame) shows
     open by another amount (:data:`OPENED_MM`, :data:`OPENED_SHARE`)."""
     moved = []
+    xy = _xy_of(expressive_grid)
     for opening in openings.values():
-        seen = opening.seen_in(expressive_grid.points, expressive_grid.mask)
+        seen = opening.seen_in(expressive_grid.points, expressive_grid.mask, xy)
         change = abs(seen.open_mm() - opening.open_mm())
         if change > max(OPENED_MM, OPENED_SHARE * opening.open_mm()):
             moved.append(opening)
@@ -219,6 +220,12 @@ class CutMotion:
         return CutMotion(each(self.upper), each(self.lower), self.openings, self.texture, self.closure)
 
 
+def _xy_of(grid):
+    """The grid's :func:`~tpscore.face.openings.grid_xy` (None without valid vertices,
+    where no opening shows a hole)."""
+    return grid_xy(grid.points, grid.mask) if grid.mask.any() else None
+
+
 def _side_weights(openings, points) -> tuple[np.ndarray, np.ndarray]:
     """Each point's weight as a data point of the upper and of the lower registration:
     0 on the other side of an opening's line inside its window."""
@@ -244,13 +251,17 @@ def register_cut(neutral, expressive, openings: list[Opening], register, texture
     surface = expressive.surface()
     weights = _side_weights(openings, grid.points)
     landmark_weight = [w.reshape(-1)[np.maximum(grid.landmark_vertices, 0)] for w in weights]
-    closure = {}
-    for opening in openings:
-        if opening.name != "mouth":
-            moved = opening.seen_in(expressive.grid.points, expressive.grid.mask)
-            height = opening.top - opening.bottom
-            closure[opening.name] = np.where(np.isfinite(moved.top), (opening.top - moved.top) / height, 1.0)
+    expressive_xy = _xy_of(expressive.grid)
     eyes = [opening for opening in openings if opening.name != "mouth"]
+    # each moved eye as the expressive scan shows it, and how far it closed
+    seen = {opening.name: opening.seen_in(expressive.grid.points, expressive.grid.mask, expressive_xy)
+            for opening in eyes}
+    closure = {}
+    for opening in eyes:
+        height = opening.top - opening.bottom
+        closure[opening.name] = np.where(np.isfinite(seen[opening.name].top),
+                                         (opening.top - seen[opening.name].top) / height, 1.0)
+    neutral_xy = _xy_of(grid)
     fields = []
     for side, weight, keep in zip(("top", "bottom"), weights, landmark_weight):
         landmarks = np.where((keep > 0.5)[:, None], neutral.landmarks, np.nan)
@@ -265,21 +276,22 @@ def register_cut(neutral, expressive, openings: list[Opening], register, texture
                 side_texture = texture.refined(current)
                 side_targets = side_texture.targets[grid.mask]
                 side_weights = texture_weight * side_texture.confidence[grid.mask]
-            corrections = _lid_corrections(eyes, side, neutral, expressive, surface, motion, side_targets,
-                                           side_weights)
+            corrections = _lid_corrections(eyes, seen, side, neutral, neutral_xy, expressive, surface, motion,
+                                           side_targets, side_weights)
         fields.append(_Corrected(motion, corrections) if corrections else motion)
     return CutMotion(fields[0], fields[1], list(openings), texture, closure)
 
 
-def _lid_corrections(eyes, side, neutral, expressive, surface, motion, texture_targets, texture_weights):
+def _lid_corrections(eyes, seen, side, neutral, neutral_xy, expressive, surface, motion, texture_targets,
+                     texture_weights):
     """Each moved eye's local correction of one side's motion, pulled by where its rim
-    went and by the texture matches."""
+    went (``seen``: each eye as the expressive scan shows it) and by the texture
+    matches."""
     grid = neutral.grid
     corrections = []
     for opening in eyes:
-        rim_from = grid.points.reshape(-1, 3)[opening.rim(grid.points, grid.mask, side)]
-        moved = opening.seen_in(expressive.grid.points, expressive.grid.mask)
-        rim_to = _onto(surface, opening.rim_targets(rim_from, moved, side), expressive.grid.points)
+        rim_from = grid.points.reshape(-1, 3)[opening.rim(grid.points, grid.mask, side, neutral_xy)]
+        rim_to = _onto(surface, opening.rim_targets(rim_from, seen[opening.name], side), expressive.grid.points)
         found = np.isfinite(rim_to).all(axis=1)
         correction = fit_local_correction(opening, side, grid.points[grid.mask], motion, surface,
                                           rim_from[found], rim_to[found], texture_targets, texture_weights)

@@ -24,7 +24,7 @@ from ..face.normalise import NormalisedFace, normalise_face
 from .action_units import ActionUnitLibrary, Activation, default_library
 from .animation import Animation, by_region, carry, field_labels
 from .modelling import (ControlPointMotion, ExpressionModel, activation_weight, align_expressive, dense_motion,
-                        mirrored, needs_realignment, place_control_points, realigned, registration_grid,
+                        mirrored, needs_realignment, openings, place_control_points, realigned, registration_grid,
                         still_weight)
 from .options import TransferOptions
 from .published import model_control_points, warp_regions
@@ -49,8 +49,10 @@ class DenseTransfer:
         return self.options.mirror_average and all(act.bilateral for act in activations)
 
     def prepare(self, neutral: NormalisedFace) -> None:
-        """What the source's registration needs of its neutral face alone (made ahead)."""
+        """What the source's registration needs of its neutral face alone (made ahead):
+        its registration grid and its openings."""
         registration_grid(neutral, self.options.motion)
+        openings(neutral)
 
     def align(self, neutral: NormalisedFace, neutral_grid: FaceGrid, expressive_grid: FaceGrid,
               activations: Sequence[Activation]) -> NormalisedFace:

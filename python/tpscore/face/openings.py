@@ -32,7 +32,7 @@ from scipy import ndimage
 from .landmarks import landmark_index
 from .regions import smoothstep
 
-__all__ = ["Opening", "OPENING_WINDOWS", "find_openings", "opening_sides", "opening_cut", "SIDE_REACH"]
+__all__ = ["Opening", "OPENING_WINDOWS", "find_openings", "opening_sides", "opening_cut", "grid_xy", "SIDE_REACH"]
 
 #: Knots along each opening's chord at which its line and edges are kept.
 N_KNOTS = 25
@@ -141,16 +141,18 @@ class Opening:
         split = np.nan_to_num(along * across)
         return np.where(above, 1.0, -1.0), split
 
-    def seen_in(self, points, mask) -> "Opening":
+    def seen_in(self, points, mask, xy=None) -> "Opening":
         """This opening (same corners and line) with the edges of the hole that a grid
-        of another scan of the face, in the same frame, shows at it."""
-        top, bottom = _hole_edges(self, points, mask)[:2]
+        of another scan of the face, in the same frame, shows at it (``xy``: the
+        grid's :func:`grid_xy`, when the caller has it already)."""
+        top, bottom = _hole_edges(self, points, mask, xy)[:2]
         return replace(self, top=top, bottom=bottom)
 
-    def rim(self, points, mask, side: str) -> np.ndarray:
+    def rim(self, points, mask, side: str, xy=None) -> np.ndarray:
         """Flat indices of the valid grid vertices that border the hole on one side
-        (``"top"``: the upper lid, the upper lip; ``"bottom"``), away from the corners."""
-        hole = _hole_edges(self, points, mask)[2]
+        (``"top"``: the upper lid, the upper lip; ``"bottom"``), away from the corners
+        (``xy`` as in :meth:`seen_in`)."""
+        hole = _hole_edges(self, points, mask, xy)[2]
         if hole is None:
             return np.zeros(0, dtype=np.int64)
         border = ndimage.binary_dilation(hole, structure=np.ones((3, 3), dtype=bool)) & mask
@@ -187,10 +189,12 @@ def _at(opening: Opening, values: np.ndarray, a) -> np.ndarray:
     return out
 
 
-def _grid_xy(points, mask) -> np.ndarray:
-    """x, y of every grid vertex, valid or not: the grid's rows and columns are regular
-    in its scan's frame, so an affine map of (row, column) fitted on the valid vertices
-    gives the invalid ones (a hole's vertices have no position of their own)."""
+def grid_xy(points, mask) -> np.ndarray:
+    """x, y (H, W, 2) of every grid vertex, valid or not: the grid's rows and columns
+    are regular in its scan's frame, so an affine map of (row, column) fitted on the
+    valid vertices gives the invalid ones (a hole's vertices have no position of their
+    own). One least-squares fit over the grid: a caller that asks about several
+    openings of one grid fits it once and passes it on."""
     height, width = mask.shape
     rows, columns = np.mgrid[0:height, 0:width]
     design = np.column_stack([rows[mask], columns[mask], np.ones(int(mask.sum()))])
@@ -201,11 +205,11 @@ def _grid_xy(points, mask) -> np.ndarray:
 def _hole_edges(opening: Opening, points, mask, xy=None):
     """The hole a grid shows at the opening: its top and bottom edge per knot (NaN
     where there is none) and the hole's grid mask (None without one). ``xy``: the
-    grid's :func:`_grid_xy`, when the caller has it already."""
+    grid's :func:`grid_xy`, when the caller has it already."""
     nothing = np.full(N_KNOTS, np.nan)
     if not mask.any():
         return nothing, nothing.copy(), None
-    a, b = opening.coordinates(_grid_xy(points, mask) if xy is None else xy)
+    a, b = opening.coordinates(grid_xy(points, mask) if xy is None else xy)
     offset = b - opening.line_at(a)
     up, down = (share * opening.width for share in opening.window[:2])
     candidates = ~mask & (a > -0.05) & (a < 1.05) & (offset < up) & (offset > -down)
@@ -260,7 +264,7 @@ def find_openings(face) -> dict[str, Opening]:
     grid = face.grid
     landmarks = grid.landmarks
     found = {}
-    xy = _grid_xy(grid.points, grid.mask) if grid.mask.any() else None  # one fit for the three openings
+    xy = grid_xy(grid.points, grid.mask) if grid.mask.any() else None  # one fit for the three openings
 
     def corner(name):
         point = landmarks[landmark_index(name)]
