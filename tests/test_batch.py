@@ -299,18 +299,19 @@ def test_a_corrupted_scan_fails_only_its_jobs(damaged_scans, client, gt_faces, t
     report = batch.run(jobs, tmp_path / "out", client=client, gt_faces=gt_faces, progress=False)
     status = {row["name"]: row["status"] for row in report.rows}
     # bs001's neutral scan is cut off: every job that reads it fails; bs002's expressive
-    # scan has no landmarks: the jobs it is the source of fail; the others run
+    # scan has no landmark file: its landmarks are detected, and its jobs run and say so
     assert status == {"bs000_LFAU_12_0__bs001": "failed", "bs000_LFAU_12_0__bs002": "done",
                       "bs001_LFAU_12_0__bs000": "failed", "bs001_LFAU_12_0__bs002": "failed",
-                      "bs002_LFAU_12_0__bs000": "failed", "bs002_LFAU_12_0__bs001": "failed"}
+                      "bs002_LFAU_12_0__bs000": "done", "bs002_LFAU_12_0__bs001": "failed"}
     table = {r["name"]: r for r in batch.read_table(tmp_path / "out" / "results.csv")}
     assert "bs001_N_N_0.bnt" in table["bs001_LFAU_12_0__bs000"]["error"]
     assert "truncated .bnt data" in table["bs001_LFAU_12_0__bs000"]["error"]
-    assert "bs002_LFAU_12_0.bnt" in table["bs002_LFAU_12_0__bs000"]["error"]
-    assert "no landmark file" in table["bs002_LFAU_12_0__bs000"]["error"]
+    detected = table["bs002_LFAU_12_0__bs000"]
+    assert "bs002_LFAU_12_0.bnt" in detected["warnings"] and "landmarks detected" in detected["warnings"]
+    assert "landmarks detected" not in table["bs000_LFAU_12_0__bs002"]["warnings"]
     assert all("\n" not in r["error"] for r in table.values())
     outputs = sorted(p.name for p in (tmp_path / "out").glob("*.npz"))
-    assert outputs == ["bs000_LFAU_12_0__bs002.npz"]
+    assert outputs == ["bs000_LFAU_12_0__bs002.npz", "bs002_LFAU_12_0__bs000.npz"]
 
 
 def test_a_scores_only_job_is_resumed_from_its_record(scans, tmp_path):

@@ -151,6 +151,23 @@ def test_adapt_fits_the_shipped_template_when_none_is_given(scan_files, tmp_path
     assert "--template-landmarks is needed" in capsys.readouterr().err
 
 
+def test_adapt_detects_the_landmarks_of_a_scan_without_a_landmark_file(scan_files, tmp_path, capsys):
+    from tpscore import physics
+
+    c = scan_files[2]
+    bare = tmp_path / "bare.bnt"
+    bare.write_bytes(c.read_bytes())  # the scan alone: no .lm3 beside it
+    out = tmp_path / "fitted.obj"
+    assert main(["adapt", str(bare), "--out", str(out), "--quiet"]) == 0
+    said = capsys.readouterr().err
+    assert "no landmark file beside" in said and "bare.bnt" in said and "landmarks detected" in said
+    vertices, _ = io.read_mesh(out)
+    head = physics.load_template()
+    truth = io.read_landmarks(c.with_suffix(".lm3"))
+    distance = np.linalg.norm(vertices[head.landmark_vertices] - truth, axis=1)
+    assert np.nanmedian(distance) < 6.0  # mm: the fit follows the detected landmarks (given ones: < 4)
+
+
 def test_elastic_runs_on_the_procedural_faces_by_default(tmp_path):
     out = tmp_path / "elastic"
     assert main(["elastic", "--out", str(out), "--expressions", "smile,frown", "--no-pictures", "--quiet"]) == 0

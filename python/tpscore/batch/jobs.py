@@ -149,7 +149,8 @@ class TransferJob(Job):
         Output stem (``OUT/<name>.npz``).
     source_neutral, source_expressive, target : path
         Scans (``.bnt`` or a mesh), each with its landmark file beside it (``.lm3``,
-        ``.csv`` or ``.json``) unless given below.
+        ``.csv`` or ``.json``) unless given below; a scan without one has its
+        landmarks detected (the job's warnings say so).
     action_units : str
         What to transfer: ``"12"``, ``"12L"``, ``"1,4,15"``, ``"12:0.5,15"`` or an
         emotion (``"sadness"``).
@@ -266,7 +267,7 @@ class AdaptJob(Job):
     template_landmarks : path
         Its feature points (``.lm3``, ``.csv`` or ``.json``).
     scan_landmarks : path, optional
-        Default: the landmark file beside the scan.
+        Default: the landmark file beside the scan, else landmarks detected from it.
     options : mapping
         Fields of :class:`tpscore.AdaptOptions` (``levels``, ``refinement``, ...).
     save : bool

@@ -23,7 +23,9 @@ import numpy as np
 from .._threads import set_num_threads
 from ..face import io
 from .._files import atomic_write
+from ..face.detect import LandmarksDetectedWarning
 from ..face.grid import FaceGrid, load_scan
+from ..face.scan_files import read_scan_landmarks, read_scan_surface
 from .scores import score_with_scan, score_with_sidecars
 
 __all__ = ["WorkSettings", "ScanCache", "JobContext", "execute", "read_record", "record_path",
@@ -117,13 +119,6 @@ def _file_key(kind: str, path: str, *extra):
     return (kind, path, stat.st_size, stat.st_mtime_ns, *extra)
 
 
-def _landmarks_beside(path: str) -> str:
-    found = io.landmark_file_beside(path)
-    if found is None:
-        raise ValueError(f"{path!r}: no landmark file beside it (looked for .lm3, .csv, .json)")
-    return str(found)
-
-
 class JobContext:
     """What a job may ask of the process it runs in: cached inputs, its output path,
     scoring, and the time spent reading."""
@@ -149,11 +144,16 @@ class JobContext:
         return value
 
     def face(self, path: str, landmarks: str | None, shape) -> FaceGrid:
-        """A scan resampled to a face grid, with its landmarks (a job needs them: a
-        missing landmark file is an error, not a warning)."""
+        """A scan resampled to a face grid, with its landmarks: the given file, else the
+        one beside the scan, else detected from the scan, which the job's warnings
+        say (every job that uses the scan, though it is detected once)."""
         key = _file_key("face", path, tuple(shape))  # a missing scan is the error to report first
-        landmarks = landmarks or _landmarks_beside(path)
-        key += _file_key("landmarks", landmarks)
+        landmarks = landmarks or io.landmark_file_beside(path)
+        if landmarks is None:
+            warnings.warn(f"{path!r}: no landmark file beside it (looked for .lm3, .csv, .json): landmarks "
+                          "detected from the scan", LandmarksDetectedWarning, stacklevel=2)
+            return self._cached(key + ("detected landmarks",), lambda: load_scan(path, "auto", shape=shape))
+        key += _file_key("landmarks", str(landmarks))
         return self._cached(key, lambda: load_scan(path, landmarks, shape=shape))
 
     def mesh(self, path: str):
@@ -171,18 +171,11 @@ class JobContext:
     def scan_mesh(self, path: str, landmarks: str | None):
         """((vertices, faces), landmarks) of a scan to fit: a ``.bnt``'s own lattice
         triangulated, or a mesh file."""
-        key = _file_key("scan-mesh", path)
-        landmarks = landmarks or _landmarks_beside(path)
-
-        def load():
-            if path.lower().endswith(".bnt"):
-                mesh = FaceGrid.from_points(io.read_bnt(path).points).mesh()
-                return mesh.vertices, mesh.faces
-            vertices, faces = io.read_mesh(path)
-            if len(faces) == 0:
-                raise ValueError(f"{path!r}: the scan has no faces; give a mesh or a .bnt")
-            return vertices, faces
-        return self._cached(key, load), self.landmarks(landmarks)
+        surface = self._cached(_file_key("scan-mesh", path), lambda: read_scan_surface(path))
+        landmarks = landmarks or io.landmark_file_beside(path)
+        if landmarks is None:
+            return surface, read_scan_landmarks(path)  # detected, with a warning
+        return surface, self.landmarks(str(landmarks))
 
     def gt_faces(self) -> np.ndarray:
         path = self.settings.gt_faces

@@ -15,7 +15,7 @@ from .. import render
 from ..adaptation import AdaptOptions, adapt
 from ..face import io
 from ..physics import load_template
-from .arguments import integer, read_scan_surface, scan_landmarks_path
+from .arguments import integer, read_scan_surface, read_scan_landmarks
 from .progress import StepLog
 
 __all__ = ["add_adapt_parser", "adapt_command"]
@@ -28,7 +28,7 @@ def add_adapt_parser(sub) -> None:
                         "(a mesh or a Bosphorus .bnt)")
     p.add_argument("--template-landmarks", metavar="FILE",
                    help=".lm3, .csv or .json (needed with TEMPLATE; the shipped template has its own)")
-    p.add_argument("--scan-landmarks", metavar="FILE", help="default: the .lm3/.csv/.json beside SCAN")
+    p.add_argument("--scan-landmarks", metavar="FILE", help="default: the .lm3/.csv/.json beside SCAN, else landmarks detected from it")
     p.add_argument("--out", required=True, metavar="MESH", help="fitted template (OBJ or PLY)")
     p.add_argument("--png", metavar="PNG", help="render scan, template and fit side by side")
     p.add_argument("--levels", type=integer(1), default=6, help="largest number of levels (default 6)")
@@ -58,7 +58,7 @@ def adapt_command(args) -> int:
             raise ValueError(f"{args.template!r}: the template has no faces; adaptation needs a mesh")
         template_landmarks = io.read_landmarks(args.template_landmarks)
     scan = read_scan_surface(args.scan)
-    scan_landmarks = io.read_landmarks(scan_landmarks_path(args.scan, args.scan_landmarks))
+    scan_landmarks = read_scan_landmarks(args.scan, args.scan_landmarks)
     say(f"read template ({len(template_vertices)} vertices) and scan ({len(scan[0])} vertices)")
 
     def progress(level) -> None:

@@ -17,7 +17,7 @@ import numpy as np
 from .. import render
 from ..face import io
 from ..physics import SimulationOptions, SkinModel, carry_head, deform_from_vertices, fit_head, load_template
-from .arguments import read_scan_surface, scan_landmarks_path
+from .arguments import read_scan_surface, read_scan_landmarks
 from .progress import StepLog
 
 __all__ = ["add_simulate_parser", "simulate_command", "parse_contractions"]
@@ -26,7 +26,7 @@ __all__ = ["add_simulate_parser", "simulate_command", "parse_contractions"]
 def add_simulate_parser(sub) -> None:
     p = sub.add_parser("simulate", help="contract muscles and open the jaw of a fitted head (physical skin)")
     p.add_argument("scan", nargs="?", metavar="SCAN", help="scan to fit the template head to (.bnt or mesh)")
-    p.add_argument("--scan-landmarks", metavar="FILE", help="landmarks of SCAN (default: the .lm3/.csv/.json beside it)")
+    p.add_argument("--scan-landmarks", metavar="FILE", help="landmarks of SCAN (default: the .lm3/.csv/.json beside it, else detected from it)")
     p.add_argument("--fitted", metavar="MESH", help="the template already fitted to a face, vertex for vertex")
     p.add_argument("--template", metavar="NPZ", help="a head file (default: the shipped template)")
     p.add_argument("--au", default="", help="AU intensities: '12', '12:0.6,4:0.3', '12L'")
@@ -91,7 +91,7 @@ def simulate_command(args) -> int:
     _check_contractions(template, contractions)
     if args.scan is not None:
         scan = read_scan_surface(args.scan)
-        landmarks = io.read_landmarks(scan_landmarks_path(args.scan, args.scan_landmarks))
+        landmarks = read_scan_landmarks(args.scan, args.scan_landmarks)
         head, adaptation = fit_head(scan, landmarks, template)
         say(f"fitted the template head to {args.scan} (level {adaptation.best_level}) and carried its skull, "
             f"muscles and jaw along")
