@@ -10,7 +10,7 @@ from tpscore.face.average_face import (
     load_average_face,
 )
 from tpscore.face.landmarks import landmark_index
-from tpscore.face.grid import resample_scan
+from tpscore.face.resampling import resample_scan
 
 
 def test_consensus_of_posed_copies_is_the_shape_in_the_canonical_frame():

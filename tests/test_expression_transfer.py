@@ -8,7 +8,7 @@ from tpscore import datasets
 from tpscore.expression import TransferOptions
 from tpscore.face.landmarks import landmark_index
 from tpscore.expression import DenseMotion, MirroredMotion, modelling, pipeline
-from tpscore.face.grid import resample_scan
+from tpscore.face.resampling import resample_scan
 from tpscore.face.regions import region_boundary
 
 VARIANTS = {"default": TransferOptions(), "published": TransferOptions.published()}

@@ -8,7 +8,7 @@ from tpscore.demo_faces import make_demo_scan
 from tpscore.expression import CutMotion
 from tpscore.expression.cut_motion import moved_openings
 from tpscore.expression.modelling import openings
-from tpscore.face.grid import load_scan
+from tpscore.face.loading import load_scan
 from tpscore.face.landmarks import landmark_index
 from tpscore.face.openings import find_openings, opening_cut, opening_sides
 

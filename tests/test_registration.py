@@ -14,7 +14,8 @@ from tpscore.expression.landmark_pairs import refine_landmark_motion, refined_pa
 from tpscore.expression.mirror import MirroredMotion
 from tpscore.expression.registration import MotionOptions, grid_normals, register_surfaces, rest_pull_per_node
 from tpscore.face.normalise import FrameTransform
-from tpscore.face.grid import FaceGrid, resample_scan
+from tpscore.face.grid import FaceGrid
+from tpscore.face.resampling import resample_scan
 from tpscore.reference import lattice as reference
 from tpscore.sparse import SparseCholesky
 from tpscore.spatial import MeshSurface

@@ -79,7 +79,9 @@ from .mesh import (
 )
 from .face.normalise import FrameTransform, NormalisedFace, normalise_face, similarity_transform, thesis_affine_transform
 from .face.detect import LandmarksDetectedWarning, detect_landmarks
-from .face.grid import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, load_scans, resample_scan
+from .face.grid import FaceGrid, GridMesh, LandmarkSnapWarning
+from .face.loading import load_scan, load_scans
+from .face.resampling import resample_scan
 from .face.pose import ImplausibleLandmarksError, ImplausibleLandmarksWarning, MirroredLandmarksError, ScanPose, scan_pose
 from .rbf import RBF, RBF_KERNELS, TPS
 from .sparse import PatternCholesky, SparseCholesky

@@ -86,7 +86,8 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .face.grid import FaceGrid, resample_scan
+from .face.grid import FaceGrid
+from .face.resampling import resample_scan
 from .face.landmarks import LANDMARK_NAMES
 from .face.regions import smoothstep
 from .physics.head import Head, build_template

@@ -23,7 +23,8 @@ import numpy as np
 from .._threads import set_num_threads
 from ..face import io
 from .._files import atomic_write
-from ..face.grid import FaceGrid, load_scan
+from ..face.grid import FaceGrid
+from ..face.loading import load_scan
 from .scores import score_with_scan, score_with_sidecars
 
 __all__ = ["WorkSettings", "ScanCache", "JobContext", "execute", "read_record", "record_path",

@@ -29,7 +29,8 @@ from .. import datasets, render
 from ..demo_faces import make_demo_scan
 from ..expression import transfer
 from ..face import io
-from ..face.grid import load_scan, resample_scan
+from ..face.loading import load_scan
+from ..face.resampling import resample_scan
 from ..physics import SimulationOptions, SkinModel, fit_head
 from .outputs import transfer_picture, write_result_mesh, write_result_page, write_sweep_gif
 from .progress import StepLog

@@ -20,7 +20,7 @@ import numpy as np
 
 from .landmarks import LANDMARK_NAMES, N_LANDMARKS, landmark_index, landmark_map
 from .normalise import FrameTransform, NormalisedFace, similarity_transform
-from .grid import FaceGrid, resample_scan
+from .grid import FaceGrid
 from .io import read_npz, write_npz
 from ..spatial import MeshSurface
 

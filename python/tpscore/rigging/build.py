@@ -16,7 +16,8 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from ..expression import ActionUnitLibrary, TransferOptions, TransferResult, default_library, transfer
-from ..face.grid import DEFAULT_GRID_SHAPE, FaceGrid, _as_shape, load_scan, load_scans
+from ..face.grid import DEFAULT_GRID_SHAPE, FaceGrid, _as_shape
+from ..face.loading import load_scan, load_scans
 from ..viewer import write_rig_html
 from .names import check_scheme, part_weights, plan_targets
 from .sources import source_scans
