@@ -15,8 +15,8 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from tpscore import CSRBF
-from tpscore.datasets import face_point_cloud
 from tpscore.reference import csrbf as reference
+from tpscore.showcase.datasets import face_point_cloud
 
 SIZES = [10_000, 40_000]
 NEIGHBOURS = 45

@@ -3,7 +3,7 @@ against the NumPy reference of the same step (tpscore.reference.skin).
 
 Skins: the template head at 1.25 mm (10,254 vertices, 30,762 particles in three
 layers, 262k springs) and at 5 mm (642 vertices), both made by
-``tpscore.datasets.skin_template``; the muscles of a smile (AU12 at 0.35: at 0.5 the
+``tpscore.showcase.datasets.skin_template``; the muscles of a smile (AU12 at 0.35: at 0.5 the
 10k skin's finer triangles fold, and the simulation would be repeated at a smaller
 contraction, timing two runs instead of one). Every benchmark checks that the core
 and the reference agree. Steps, simulated time and steps per second of each settle
@@ -20,10 +20,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tpscore.datasets import skin_template
 from tpscore.physics import SkinModel
 from tpscore.physics.system import INTEGRATORS
 from tpscore.reference import skin as reference
+from tpscore.showcase.datasets import skin_template
 
 SMILE = {"12": 0.35}
 

@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 import tpscore
-from tpscore.demo_faces import make_demo_scan
 from tpscore.expression import animate
 from tpscore.face import io
+from tpscore.showcase.demo_faces import make_demo_scan
 
 
 GROUP = "transfer: 3 scans (with colour images) from files to the animated target"

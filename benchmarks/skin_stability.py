@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from tpscore.datasets import skin_template
 from tpscore.physics import SkinModel
 from tpscore.physics.system import INTEGRATORS
+from tpscore.showcase.datasets import skin_template
 
 ROOT = Path(__file__).resolve().parents[1]
 SIMULATED_S = 0.15

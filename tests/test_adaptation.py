@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 import tpscore
-from tpscore import datasets
 from tpscore import cli
 from tpscore.adaptation import AdaptationWarning, AdaptOptions, adapt
 from tpscore.adaptation.calibration import axes_calibration, calibrate, rotation_angles
@@ -20,6 +19,7 @@ from tpscore.adaptation.surface import SurfaceOffset, fit_surface_offset
 from tpscore.face import io
 from tpscore.face.grid import FaceGrid
 from tpscore.face.landmarks import landmark_index
+from tpscore.showcase import datasets
 from tpscore.spatial import MeshSurface
 
 

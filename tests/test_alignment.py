@@ -2,11 +2,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tpscore import datasets
 from tpscore.expression.alignment import align_rigid, fit_mirror_symmetry, rigid_landmark_fit
 from tpscore.face.normalise import FrameTransform
-from tpscore.face.grid import resample_scan
 from tpscore.face.regions import region_weight
+from tpscore.face.resampling import resample_scan
+from tpscore.showcase import datasets
 
 
 def _grid(scan):

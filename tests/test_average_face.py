@@ -1,8 +1,6 @@
 import numpy as np
 import pytest
 
-from tpscore import datasets
-from tpscore.datasets import afm_faces
 from tpscore.face.average_face import (
     AverageFace,
     build_average_face,
@@ -10,7 +8,9 @@ from tpscore.face.average_face import (
     load_average_face,
 )
 from tpscore.face.landmarks import landmark_index
-from tpscore.face.grid import resample_scan
+from tpscore.face.resampling import resample_scan
+from tpscore.showcase import datasets
+from tpscore.showcase.datasets import afm_faces
 
 
 def test_consensus_of_posed_copies_is_the_shape_in_the_canonical_frame():

@@ -28,12 +28,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import tpscore
-from tpscore import datasets
 from tpscore.cli import main
 from tpscore.face import io
 from tpscore.face.average_face import AverageFace
-from tpscore.face.grid import FaceGrid, load_scan, resample_scan
+from tpscore.face.grid import FaceGrid
 from tpscore.face.landmarks import MIRROR_LANDMARK, landmark_index
+from tpscore.face.loading import load_scan
+from tpscore.face.resampling import resample_scan
+from tpscore.showcase import datasets
 
 # --------------------------------------------------------------------------- inputs
 

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from tpscore import datasets
 from tpscore.face import io
 from tpscore.cli import main
+from tpscore.showcase import datasets
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +79,7 @@ def test_version(capsys):
 def test_transfer_of_coloured_scans_writes_colour(tmp_path, capsys):
     # scans with colour images: the OBJ is textured by the target's image, the PLY
     # carries its colours, the page holds its photograph
-    from tpscore import demo_faces
+    from tpscore.showcase import demo_faces
 
     paths = [demo_faces.make_demo_scan(person, expression, seed=seed).write(tmp_path, name)
              for person, expression, seed, name in ((0, None, 1, "a"), (0, {"4": 1.0}, 2, "b"), (1, None, 3, "c"))]

@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 import tpscore
 from tpscore import csrbf
 from tpscore.csrbf import CSRBF, ConvergenceError
-from tpscore.datasets import face_point_cloud
 from tpscore.reference import csrbf as reference
+from tpscore.showcase.datasets import face_point_cloud
 
 
 def support_for(n, neighbours, area=150 * 180 * 1.15):

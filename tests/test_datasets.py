@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import tpscore
-from tpscore import datasets
-from tpscore.datasets import (
+from tpscore.showcase import datasets
+from tpscore.showcase.datasets import (
     ACTION_UNITS,
     MIDLINE_RAMP_MM,
     FaceParameters,

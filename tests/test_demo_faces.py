@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 import tpscore
-from tpscore import demo_faces, load_scan
+from tpscore import load_scan
 from tpscore.face.image import sample_image
+from tpscore.showcase import demo_faces
 from tpscore.spatial import MeshSurface
 
 

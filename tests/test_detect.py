@@ -5,9 +5,9 @@ import pytest
 
 import tpscore
 from tpscore import detect_landmarks
-from tpscore.datasets import make_face
 from tpscore.face.io import BntScan
 from tpscore.face.landmarks import landmark_index
+from tpscore.showcase.datasets import make_face
 
 LEFT_EYE = [landmark_index("Outer left eye corner"), landmark_index("Inner left eye corner")]
 
@@ -71,7 +71,7 @@ def test_a_landmark_over_a_hole_is_nan(neutral):
 
 
 def test_a_demo_face_and_its_open_mouth():
-    demo_faces = pytest.importorskip("tpscore.demo_faces")
+    demo_faces = pytest.importorskip("tpscore.showcase.demo_faces")
     scan = demo_faces.make_demo_scan(1, {"26": 1.0}, seed=1)
     found = detect_landmarks(scan.scan)
     errors = _errors(found, scan.landmarks)

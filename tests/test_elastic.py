@@ -8,12 +8,12 @@ import pytest
 import scipy.sparse as sp
 
 import tpscore
-from tpscore import datasets, render
 from tpscore.elastic import (ElasticControlPoint, ElasticFace, ElasticOptions, ExpressionSet, default_control_points,
                              default_fixed_region, place_control_points)
 from tpscore.face.landmarks import AnchoredPoint
 from tpscore.face.normalise import face_frame
 from tpscore.mesh import cotan_laplacian, voronoi_areas
+from tpscore.showcase import datasets, render
 
 
 def grid_patch(size=61, spacing=1.0):

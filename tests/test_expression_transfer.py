@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 
 import tpscore
-from tpscore import datasets
 from tpscore.expression import TransferOptions
 from tpscore.face.landmarks import landmark_index
 from tpscore.expression import DenseMotion, MirroredMotion, modelling, pipeline
-from tpscore.face.grid import resample_scan
 from tpscore.face.regions import region_boundary
+from tpscore.face.resampling import resample_scan
+from tpscore.showcase import datasets
 
 VARIANTS = {"default": TransferOptions(), "published": TransferOptions.published()}
 
@@ -132,7 +132,7 @@ def test_what_the_second_thread_prepares_changes_nothing(smile, monkeypatch):
 @pytest.fixture(scope="module")
 def scan_files(tmp_path_factory):
     """A source's neutral and smiling scans and a target's, as .bnt + .lm3 + .png."""
-    from tpscore import demo_faces
+    from tpscore.showcase import demo_faces
 
     folder = tmp_path_factory.mktemp("scans")
     return [demo_faces.make_demo_scan(person, expression, seed=seed).write(folder, name)

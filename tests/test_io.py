@@ -482,7 +482,8 @@ def test_textured_obj_reads_back_with_its_colours_where_they_belong(tmp_path):
 def test_textured_obj_of_a_scan_shows_its_photograph(tmp_path):
     # a demo scan's grid, written as a textured mesh and read back by trimesh: each
     # vertex's colour is the scan's colour at that vertex
-    from tpscore import demo_faces, load_scan
+    from tpscore import load_scan
+    from tpscore.showcase import demo_faces
 
     scan = demo_faces.make_demo_scan(2, None, seed=4)
     grid = load_scan(scan.write(tmp_path, "scan"))

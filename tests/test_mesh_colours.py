@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 import tpscore
-from tpscore import datasets
 from tpscore.expression.texture import track_texture
 from tpscore.face import io
 from tpscore.face.image import sample_image
+from tpscore.showcase import datasets
 from test_texture import textured_pair
 
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tpscore import datasets, render
 from tpscore.elastic import EMOTIONS, ElasticFace, LinearMuscle, MuscleModel, SphincterMuscle, load_muscles
+from tpscore.showcase import datasets, render
 
 
 @pytest.fixture(scope="module")

@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 
 import tpscore
-from tpscore.demo_faces import make_demo_scan
 from tpscore.expression import CutMotion
 from tpscore.expression.cut_motion import moved_openings
 from tpscore.expression.modelling import openings
-from tpscore.face.grid import load_scan
 from tpscore.face.landmarks import landmark_index
+from tpscore.face.loading import load_scan
 from tpscore.face.openings import find_openings, opening_cut, opening_sides
+from tpscore.showcase.demo_faces import make_demo_scan
 
 SCAN = dict(noise_mm=0.1, holes=0, pose_deg=3.0, landmark_noise_mm=0.3)
 SURPRISE = {"1": 1.0, "2": 1.0, "5": 1.0, "26": 0.4}

@@ -8,15 +8,16 @@ import numpy as np
 import pytest
 
 import tpscore
-from tpscore import datasets, physics
+from tpscore import physics
 from tpscore.cli import main
 from tpscore.face import io
 from tpscore.face.landmarks import landmark_index
 from tpscore.physics import SimulationError, SimulationOptions, SkinMaterial, SkinModel, SkinWarning
 from tpscore.physics.fitting import carry_head, deform_from_vertices
-from tpscore.datasets import skin_template
 from tpscore.physics.head import REGIONS
 from tpscore.reference.skin import bone_points
+from tpscore.showcase import datasets
+from tpscore.showcase.datasets import skin_template
 
 from skin_helpers import flat_head, linear_muscle
 

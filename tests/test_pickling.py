@@ -8,7 +8,7 @@ import pytest
 import scipy.sparse as sp
 
 import tpscore
-from tpscore import datasets
+from tpscore.showcase import datasets
 
 
 @pytest.fixture(scope="module")

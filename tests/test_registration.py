@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from tpscore import _core, datasets
+from tpscore import _core
 from tpscore.face.landmarks import landmark_index
 from tpscore.lattice import BSplineLattice, LatticeSystem, symmetric_blocks
 from tpscore.expression import registration
@@ -14,8 +14,10 @@ from tpscore.expression.landmark_pairs import refine_landmark_motion, refined_pa
 from tpscore.expression.mirror import MirroredMotion
 from tpscore.expression.registration import MotionOptions, grid_normals, register_surfaces, rest_pull_per_node
 from tpscore.face.normalise import FrameTransform
-from tpscore.face.grid import FaceGrid, resample_scan
+from tpscore.face.grid import FaceGrid
+from tpscore.face.resampling import resample_scan
 from tpscore.reference import lattice as reference
+from tpscore.showcase import datasets
 from tpscore.sparse import SparseCholesky
 from tpscore.spatial import MeshSurface
 

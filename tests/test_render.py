@@ -7,9 +7,9 @@ import pytest
 from PIL import Image
 
 import tpscore
-from tpscore import render
-from tpscore.datasets import face_height, make_face
-from tpscore.render import (
+from tpscore.showcase import render
+from tpscore.showcase.datasets import face_height, make_face
+from tpscore.showcase.render import (
     error_heatmap,
     fit_camera,
     grid_mesh,

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from tpscore import (AdaptLevel, AdaptResult, Correspondences, FrameTransform, datasets, resample_scan,
-                     transfer)
+from tpscore import AdaptLevel, AdaptResult, Correspondences, FrameTransform, resample_scan, transfer
+from tpscore.showcase import datasets
 
 
 @pytest.fixture(scope="module")

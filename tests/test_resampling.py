@@ -25,7 +25,7 @@ from tpscore import (
     write_lm3,
     write_mesh,
 )
-from tpscore.face.grid import DEFAULT_MAX_GAP_MM
+from tpscore.face.resampling import DEFAULT_MAX_GAP_MM
 
 ZMIN = -1.0e9
 SPACING = 0.7                      # source grid spacing, mm (as make_scans.py)

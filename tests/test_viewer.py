@@ -4,7 +4,8 @@ import re
 import numpy as np
 import pytest
 
-from tpscore import demo_faces, load_scan, transfer, viewer
+from tpscore import load_scan, transfer
+from tpscore.showcase import demo_faces, viewer
 
 
 @pytest.fixture(scope="module")

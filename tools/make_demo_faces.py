@@ -7,7 +7,7 @@ package ships a small part of the ICT FaceKit model (MIT licence; the licence te
 copied beside the extract): the face area a frontal scanner sees, a few people, and the
 expression shapes of the action units tpscore implements. The scans, their skin
 texture and their ground truth are made from it at run time by
-:mod:`tpscore.demo_faces`; the transfer method itself never reads it.
+:mod:`tpscore.showcase.demo_faces`; the transfer method itself never reads it.
 
     python tools/make_demo_faces.py [--model ../shared/data/ict-facekit/face_model.npz]
 

@@ -1,15 +1,17 @@
 """tpscore: thin-plate splines and radial basis functions for 3D faces.
 
 The public API lives in the submodules and is re-exported here; the compiled
-kernels in ``tpscore._core`` are private. Procedural faces are in
-:mod:`tpscore.datasets`, the demo's faces in :mod:`tpscore.demo_faces`, headless
-rendering in :mod:`tpscore.render` and the browser page of a result in
-:mod:`tpscore.viewer`; rigs of morph targets for animation tools in :mod:`tpscore.rigging`
-(``tpscore.rig(...)`` makes one).
+kernels in ``tpscore._core`` are private. The showcase (:mod:`tpscore.showcase`) holds
+the procedural faces (:mod:`tpscore.showcase.datasets`), the demo's faces
+(:mod:`tpscore.showcase.demo_faces`), headless rendering (:mod:`tpscore.showcase.render`)
+and the browser page of a result (:mod:`tpscore.showcase.viewer`); ``tpscore.datasets``,
+``tpscore.render`` and ``tpscore.viewer`` name the same modules. Rigs of morph targets
+for animation tools are in :mod:`tpscore.rigging` (``tpscore.rig(...)`` makes one).
 """
 from __future__ import annotations
 
-from . import datasets, physics, render, viewer
+from . import physics
+from .showcase import datasets, render, viewer
 from ._version import __version__
 from ._threads import max_threads, num_threads, set_num_threads
 from .face.average_face import AverageFace, build_average_face, load_average_face
@@ -79,7 +81,9 @@ from .mesh import (
 )
 from .face.normalise import FrameTransform, NormalisedFace, normalise_face, similarity_transform, thesis_affine_transform
 from .face.detect import LandmarksDetectedWarning, detect_landmarks
-from .face.grid import FaceGrid, GridMesh, LandmarkSnapWarning, load_scan, load_scans, resample_scan
+from .face.grid import FaceGrid, GridMesh, LandmarkSnapWarning
+from .face.loading import load_scan, load_scans
+from .face.resampling import resample_scan
 from .face.pose import ImplausibleLandmarksError, ImplausibleLandmarksWarning, MirroredLandmarksError, ScanPose, scan_pose
 from .rbf import RBF, RBF_KERNELS, TPS
 from .sparse import PatternCholesky, SparseCholesky
@@ -169,6 +173,7 @@ __all__ = [
     "datasets",
     "physics",
     "render",
+    "showcase",
     "viewer",
     # compactly supported RBF
     "CSRBF",

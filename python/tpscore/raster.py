@@ -1,6 +1,6 @@
 """Orthographic z-buffer rasterisation: which triangle each pixel of an image sees.
 
-Pictures of faces (:mod:`tpscore.render`) and the colour images that texture tracking
+Pictures of faces (:mod:`tpscore.showcase.render`) and the colour images that texture tracking
 compares (:mod:`tpscore.expression.texture`) both project a mesh along the view axis and keep,
 per pixel, the front-most triangle under the pixel's centre and the barycentric
 weights of that centre, from which any vertex quantity (colour, u,v, position) is

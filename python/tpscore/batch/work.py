@@ -24,7 +24,8 @@ from .._threads import set_num_threads
 from ..face import io
 from .._files import atomic_write
 from ..face.detect import LandmarksDetectedWarning
-from ..face.grid import FaceGrid, load_scan
+from ..face.grid import FaceGrid
+from ..face.loading import load_scan
 from ..face.scan_files import read_scan_landmarks, read_scan_surface
 from .scores import score_with_scan, score_with_sidecars
 

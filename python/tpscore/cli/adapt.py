@@ -11,10 +11,10 @@ vertex order, count and faces, in the scan's frame.
 from __future__ import annotations
 
 
-from .. import render
 from ..adaptation import AdaptOptions, adapt
 from ..face import io
 from ..physics import load_template
+from ..showcase import render
 from .arguments import integer, read_scan_surface, read_scan_landmarks
 from .progress import StepLog
 

@@ -1,7 +1,7 @@
 """``tpscore demo``: expression transfer between two real faces, scored against the truth.
 
 The faces are two people of the ICT FaceKit extract that ships with tpscore for the demo
-(:mod:`tpscore.demo_faces`): tpscore scans them in the Bosphorus formats, with a skin
+(:mod:`tpscore.showcase.demo_faces`): tpscore scans them in the Bosphorus formats, with a skin
 texture of its own, then transfers each expression from the source person's scans to
 the target person's neutral scan exactly as ``tpscore transfer`` does with files, and
 compares the result with the target person wearing the same expression (the model's
@@ -25,12 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import datasets, render
-from ..demo_faces import make_demo_scan
 from ..expression import transfer
 from ..face import io
-from ..face.grid import load_scan, resample_scan
+from ..face.loading import load_scan
+from ..face.resampling import resample_scan
 from ..physics import SimulationOptions, SkinModel, fit_head
+from ..showcase import datasets, render
+from ..showcase.demo_faces import make_demo_scan
 from .outputs import transfer_picture, write_result_mesh, write_result_page, write_sweep_gif
 from .progress import StepLog
 

@@ -6,7 +6,7 @@
                     [--expressions mouthSmile_L,jawOpen,...] [--remesh-target] --out DIR
 
 Inputs: without ``--source`` or ``--face-model``, tpscore's procedural faces
-(:func:`tpscore.datasets.elastic_faces`: the demo's two people as meshes, with smile,
+(:func:`tpscore.showcase.datasets.elastic_faces`: the demo's two people as meshes, with smile,
 frown, brows, dimpler, sad_mouth and stretch on the neutral's vertices; the report then
 also gives each clone's distance from the target's own expression). Or ``.npz`` files:
 
@@ -29,11 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import datasets, render
 from .._files import atomic_write
 from ..elastic import ElasticFace, ElasticOptions
 from ..face import io
 from ..mesh import height_field_remesh
+from ..showcase import datasets, render
 from .arguments import integer
 from .progress import StepLog
 

@@ -29,9 +29,9 @@ from .._version import __version__
 from ..batch.scores import surface_distances
 from ..expression import TransferOptions, transfer
 from ..face import io
-from ..datasets import afm_faces
 from ..face.average_face import build_average_face
-from ..face.grid import load_scan, load_scans
+from ..face.loading import load_scan, load_scans
+from ..showcase.datasets import afm_faces
 from .adapt import add_adapt_parser, adapt_command
 from .arguments import grid_shape
 from .batch import add_batch_parser, batch_command

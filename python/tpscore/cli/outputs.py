@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import render, viewer
 from ..face import io
+from ..showcase import render, viewer
 
 __all__ = ["write_result_mesh", "transfer_picture", "write_sweep_gif", "write_result_page"]
 
@@ -109,5 +109,5 @@ def write_sweep_gif(result, path, *, frames: int = 18, fps: float = 12.0) -> Non
 
 
 def write_result_page(result, path, *, title: str | None = None) -> None:
-    """The result's page for a browser (:func:`tpscore.viewer.write_result_html`)."""
+    """The result's page for a browser (:func:`tpscore.showcase.viewer.write_result_html`)."""
     viewer.write_result_html(path, result, title=title)

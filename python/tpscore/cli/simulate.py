@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import render
 from ..face import io
 from ..physics import SimulationOptions, SkinModel, carry_head, deform_from_vertices, fit_head, load_template
+from ..showcase import render
 from .arguments import read_scan_surface, read_scan_landmarks
 from .progress import StepLog
 

@@ -21,8 +21,9 @@ import numpy as np
 
 from .._threads import blas_on_one_thread
 from ..face.average_face import AverageFace, load_average_face
-from ..face.grid import FaceGrid, GridMesh, load_scan
+from ..face.grid import FaceGrid, GridMesh
 from ..face.landmarks import MIN_LANDMARKS, N_LANDMARKS
+from ..face.loading import load_scan
 from ..face.normalise import NormalisedFace, normalise_face
 from ..face.pose import check_landmarks
 from ..face.regions import region_boundary

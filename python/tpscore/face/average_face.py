@@ -6,7 +6,7 @@ and morphed onto it with the landmark TPS; the morphed surfaces are sampled on o
 regular x-y grid (depth along a ray from the viewer) and their depths averaged.
 
 tpscore ships an AFM built by :func:`build_average_face` from the procedural faces of
-:mod:`tpscore.datasets` (``tpscore build-afm`` rebuilds it); users build their own from
+:mod:`tpscore.showcase.datasets` (``tpscore build-afm`` rebuilds it); users build their own from
 any database of faces.
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 
 from .landmarks import LANDMARK_NAMES, N_LANDMARKS, landmark_index, landmark_map
 from .normalise import FrameTransform, NormalisedFace, similarity_transform
-from .grid import FaceGrid, resample_scan
+from .grid import FaceGrid
 from .io import read_npz, write_npz
 from ..spatial import MeshSurface
 
@@ -190,7 +190,7 @@ def build_average_face(faces: Sequence[FaceGrid], shape=(150, 150), *, coverage:
 
 @lru_cache(maxsize=1)
 def load_average_face() -> AverageFace:
-    """The AFM shipped with tpscore (built from the procedural faces of tpscore.datasets)."""
+    """The AFM shipped with tpscore (built from the procedural faces of tpscore.showcase.datasets)."""
     path = resources.files("tpscore").joinpath("data/average_face.npz")
     with resources.as_file(path) as real:
         return AverageFace.load(real)

@@ -6,7 +6,7 @@ vertices the mandible carries, the jaw's pivot and axis, and the muscles.
 
 The template head that ships with tpscore (:func:`load_template`,
 ``tpscore/data/skin_template.npz``) is made by :func:`build_template` from tpscore's own
-procedural average face (:func:`tpscore.datasets.make_face` with the default
+procedural average face (:func:`tpscore.showcase.datasets.make_face` with the default
 identity): the face sampled on a regular grid, triangulated, with the mouth cut open
 between the mouth corners (the lips get separate vertices along the mouth line, so
 the jaw can open it). Its skull is an inner surface at soft-tissue depths per region:
@@ -372,11 +372,11 @@ def build_template(scan, spacing_mm: float = DEFAULT_SPACING_MM, *, muscles=None
     """The template head made from a neutral face on a regular grid.
 
     The shipped template is built from tpscore's procedural average face,
-    :func:`tpscore.datasets.skin_template` (``make_face(None, spacing_mm=2.5)``).
+    :func:`tpscore.showcase.datasets.skin_template` (``make_face(None, spacing_mm=2.5)``).
 
     Parameters
     ----------
-    scan : a synthetic scan (:class:`tpscore.datasets.SyntheticScan`)
+    scan : a synthetic scan (:class:`tpscore.showcase.datasets.SyntheticScan`)
         ``points`` (H, W, 3) on a grid of ``spacing_mm``, ``valid`` (H, W) and the 22
         ``landmarks``, in the reference frame.
     spacing_mm : float

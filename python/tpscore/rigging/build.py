@@ -16,8 +16,9 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from ..expression import ActionUnitLibrary, TransferOptions, TransferResult, default_library, transfer
-from ..face.grid import DEFAULT_GRID_SHAPE, FaceGrid, _as_shape, load_scan, load_scans
-from ..viewer import write_rig_html
+from ..face.grid import DEFAULT_GRID_SHAPE, FaceGrid, _as_shape
+from ..face.loading import load_scan, load_scans
+from ..showcase.viewer import write_rig_html
 from .names import check_scheme, part_weights, plan_targets
 from .sources import source_scans
 
@@ -77,7 +78,7 @@ class Rig:
 
     def write_html(self, path, *, title: str = "tpscore rig") -> None:
         """A self-contained page of the rig for any browser: the textured face with a
-        slider per morph target (:func:`tpscore.viewer.write_rig_html`)."""
+        slider per morph target (:func:`tpscore.showcase.viewer.write_rig_html`)."""
         textured = self.image is not None
         write_rig_html(path, self.vertices, [(t.name, t.displacement) for t in self.targets], self.triangles,
                        uv=self.uv if textured else None, image=self.image if textured else None, title=title,

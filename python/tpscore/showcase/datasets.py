@@ -86,10 +86,11 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .face.grid import FaceGrid, resample_scan
-from .face.landmarks import LANDMARK_NAMES
-from .face.regions import smoothstep
-from .physics.head import Head, build_template
+from ..face.grid import FaceGrid
+from ..face.landmarks import LANDMARK_NAMES
+from ..face.regions import smoothstep
+from ..face.resampling import resample_scan
+from ..physics.head import Head, build_template
 
 __all__ = [
     "FaceParameters",

@@ -1,8 +1,8 @@
 """Demo faces: Bosphorus-format scans of real face shapes, with a skin of tpscore's own.
 
 The shapes come from a compact extract of the ICT FaceKit face model that ships with
-tpscore for the demo only (``data/ict_demo_faces.npz``, MIT licence, text in
-``data/ict_facekit_LICENSE.txt``; written by ``tools/make_demo_faces.py``): the face
+tpscore for the demo only (``tpscore/data/ict_demo_faces.npz``, MIT licence, text in
+``tpscore/data/ict_facekit_LICENSE.txt``; written by ``tools/make_demo_faces.py``): the face
 area a frontal scanner sees, four people, and the expression shapes of the action
 units tpscore implements (AU1 browInnerUp, AU2 browOuterUp, AU4 browDown, AU12
 mouthSmile, AU14 mouthDimple, AU15 mouthFrown, AU17 mouthShrugLower, AU20
@@ -34,10 +34,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .face.io import BntScan, write_bnt, write_lm3, write_png
-from .mesh import vertex_normals
-from .raster import rasterise
-from .spatial import KDTree, MeshSurface
+from ..face.io import BntScan, write_bnt, write_lm3, write_png
+from ..mesh import vertex_normals
+from ..raster import rasterise
+from ..spatial import KDTree, MeshSurface
 
 __all__ = ["DemoFaceModel", "DemoScan", "load_demo_model", "make_demo_scan", "DEMO_AUS"]
 

@@ -21,10 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 from PIL import Image, ImageDraw
 
-from ._files import atomic_write
-from ._validation import as_faces, as_points
-from .face.image import as_colour_image, sample_image
-from .raster import rasterise
+from .._files import atomic_write
+from .._validation import as_faces, as_points
+from ..face.image import as_colour_image, sample_image
+from ..raster import rasterise
 
 __all__ = [
     "Camera",

@@ -2,7 +2,7 @@
 
 The page holds the target's neutral face, the displacement field of the transfer, the
 normals of both ends of the motion, the u,v map and the target's photograph, as base64
-inside the file, and draws them with a small WebGL viewer (``data/viewer/``: the page,
+inside the file, and draws them with a small WebGL viewer (``tpscore/data/viewer/``: the page,
 its script and its two shaders, all tpscore's own). The animation is linear in the
 magnitude, so the browser holds the neutral face and the field and moves every vertex
 on the GPU as the slider moves; the face turns with the mouse and zooms with the wheel.
@@ -21,11 +21,11 @@ from typing import Mapping
 import numpy as np
 from PIL import Image
 
-from ._validation import as_faces, as_points
-from ._version import __version__
-from .face.image import as_colour_image
-from ._files import atomic_write
-from .mesh import vertex_normals
+from .._validation import as_faces, as_points
+from .._version import __version__
+from ..face.image import as_colour_image
+from .._files import atomic_write
+from ..mesh import vertex_normals
 
 __all__ = ["page_html", "write_html", "write_result_html", "rig_page_html", "write_rig_html"]
 
