@@ -100,8 +100,7 @@ def test_lattice_data_term_is_the_same_to_the_bit_on_every_simd_level(tmp_path):
         "import sys, numpy as np\n"
         "from tpscore import _core\n"
         "d = np.load(sys.argv[1]); rows, cols = (int(v) for v in d['shape'])\n"
-        "out = np.zeros((rows * cols, 25, 6))\n"
-        "_core.lattice_block_gram_into(d['first'], d['weights'], d['blocks'], rows, cols, out)\n"
+        "out = _core.lattice_block_gram(d['first'], d['weights'], d['blocks'], rows, cols)\n"
         "np.save(sys.argv[2], out)\n")
     results = []
     for level in ("avx2", "baseline"):
@@ -147,13 +146,12 @@ def test_lattice_system_rejects_couplings_beyond_two_stencils_and_bad_blocks():
 
 def test_lattice_gram_kernel_refuses_a_stencil_that_leaves_the_lattice():
     rows, cols = 6, 5
-    out = np.zeros((rows * cols, 25, 6))
     weights, blocks = np.ones((1, 16)), np.ones((1, 6))
     for first in (-1, 2, 3 * cols):          # before the lattice, past its right, past its foot
         with pytest.raises(ValueError, match="leaves the 6 x 5 lattice"):
-            _core.lattice_block_gram_into(np.array([first]), weights, blocks, rows, cols, out)
-    with pytest.raises(ValueError, match="out must have shape"):
-        _core.lattice_block_gram_into(np.array([0]), weights, blocks, rows, cols, np.zeros((4, 25, 6)))
+            _core.lattice_block_gram(np.array([first]), weights, blocks, rows, cols)
+    with pytest.raises(ValueError, match="differ in length"):
+        _core.lattice_block_gram(np.array([0, 1]), weights, blocks, rows, cols)
 
 
 def test_options_are_validated():
@@ -476,12 +474,10 @@ def test_registration_terms_match_the_numpy_reference_to_the_bit(m):
     targets = moved + rng.normal(scale=0.7, size=(m, 3))
     for floor in (0.5, 5.0):
         expected = terms.point_to_plane_terms(sample, moved, closest, distances, normals, prior, floor, 3.0)
-        got = [np.empty((m, 6)), np.empty((m, 3)), np.empty(m), np.empty(m)]
-        _core.point_to_plane_terms_into(sample, moved, closest, distances, normals, prior, floor, 3.0, *got)
+        got = _core.point_to_plane_terms(sample, moved, closest, distances, normals, prior, floor, 3.0)
         for a, b in zip(got, expected):
             np.testing.assert_array_equal(a, b)
         expected = terms.texture_pull_terms(sample, moved, targets, normals, prior, floor, 3.0)
-        got = [np.empty((m, 6)), np.empty((m, 3))]
-        _core.texture_pull_terms_into(sample, moved, targets, normals, prior, floor, 3.0, *got)
+        got = _core.texture_pull_terms(sample, moved, targets, normals, prior, floor, 3.0)
         for a, b in zip(got, expected):
             np.testing.assert_array_equal(a, b)

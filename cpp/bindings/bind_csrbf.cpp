@@ -1,18 +1,20 @@
 // Bindings of the CSRBF fit. Inputs arrive validated from tpscore.csrbf; the core
 // throws std::invalid_argument (-> ValueError) for duplicate centres, which only the
-// neighbour search can see.
+// neighbour search can see. Arrays follow arrays.hpp: In<T> views in, owning values out.
 #include <nanobind/eigen/dense.h>
 #include <nanobind/nanobind.h>
 
+#include "arrays.hpp"
 #include "tpscore/csrbf.hpp"
 
 namespace nb = nanobind;
 using namespace nb::literals;
+using tpscore_bindings::In;
 
 void bind_csrbf(nb::module_& m) {
     using tpscore::CSRBF;
-    using tpscore::MatrixRef;
-    using tpscore::PointsRef;
+    using tpscore::MatrixX;
+    using tpscore::Points;
 
     nb::enum_<tpscore::CSRBFPreconditioner>(m, "CSRBFPreconditioner", "Preconditioner of the BiCGSTAB solve.")
         .value("diagonal", tpscore::CSRBFPreconditioner::diagonal)
@@ -20,7 +22,7 @@ void bind_csrbf(nb::module_& m) {
     nb::class_<CSRBF>(m, "CSRBF", "Fitted CSRBF field (use tpscore.CSRBF).")
         .def(
             "__init__",
-            [](CSRBF* self, const PointsRef& centres, const MatrixRef& values, const PointsRef& normals,
+            [](CSRBF* self, In<Points> centres, In<MatrixX> values, In<Points> normals,
                double support, double smoothing, bool quadric, tpscore::CSRBFPreconditioner preconditioner,
                double tolerance,
                std::int64_t max_iterations) {
@@ -37,7 +39,8 @@ void bind_csrbf(nb::module_& m) {
             "centres"_a, "values"_a, "normals"_a, "support"_a, "smoothing"_a, "quadric"_a,
             "preconditioner"_a, "tolerance"_a, "max_iterations"_a,
             "Fit; normals (0, 3) to estimate them.")
-        .def("evaluate", &CSRBF::evaluate, "queries"_a, nb::call_guard<nb::gil_scoped_release>(),
+        .def("evaluate", [](const CSRBF& s, In<Points> queries) { return s.evaluate(queries); }, "queries"_a,
+             nb::call_guard<nb::gil_scoped_release>(),
              "The field at (m, 3) queries: (m, k).")
         .def_prop_ro("coefficients", [](const CSRBF& s) { return tpscore::MatrixX(s.coefficients()); })
         .def_prop_ro("iterations", [](const CSRBF& s) { return tpscore::IndexVector(s.iterations()); })

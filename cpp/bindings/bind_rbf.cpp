@@ -1,21 +1,20 @@
 // nanobind glue for the dense RBF / thin-plate-spline kernels (tpscore/rbf.hpp).
 // Inputs arrive validated, C-contiguous float64 from tpscore.rbf; every call
-// releases the GIL, and results are returned as owning NumPy arrays.
+// releases the GIL. Results are owning NumPy arrays (arrays.hpp), except for the
+// evaluation at query points, which fills an array Python allocated (see below).
 #include <nanobind/eigen/dense.h>
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
 
+#include "arrays.hpp"
 #include "tpscore/rbf.hpp"
 
 namespace nb = nanobind;
 using namespace nb::literals;
+using tpscore_bindings::In;
 
 namespace {
 
-// Row-major float64 without conversion: the Python layer already made it so, and a
-// silent copy here would hide a missed conversion.
-using PointsIn = nb::DRef<const tpscore::Points>;
-using MatrixIn = nb::DRef<const tpscore::MatrixX>;
 // A writable C-contiguous float64 NumPy array, filled in place (never a copy).
 using MatrixOut = nb::ndarray<double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
 
@@ -47,33 +46,37 @@ void bind_rbf(nb::module_& m) {
         .def_prop_ro("rcond", [](const tpscore::RbfModel& s) { return s.rcond; })
         .def_prop_ro("scale", [](const tpscore::RbfModel& s) { return s.scale; })
         .def_prop_ro("size", [](const tpscore::RbfModel& s) { return s.size(); }, "Number of centres n.")
-        // Python allocates the output and the kernel fills it in place: a caller
-        // evaluating animation frames can reuse one buffer, and the returned array is
-        // an ordinary NumPy array (no capsule-owned Eigen storage).
+        // The one binding that fills a caller's buffer rather than returning an owning
+        // array. The kernel starts the thread pool, whose threads stay alive and may take
+        // the rest of a capped address space; an owning return then needs allocations
+        // after the kernel, inside nanobind's conversion, which aborts (noexcept) where
+        // one fails. With the result (up to 2 GiB) allocated by NumPy before the call,
+        // a MemoryError if it does not fit, nothing is allocated afterwards
+        // (tests/test_package.py, test_threads_that_cannot_start_do_not_abort_...).
         .def("evaluate_into",
-             [](const tpscore::RbfModel& s, PointsIn queries, MatrixOut out) {
+             [](const tpscore::RbfModel& s, In<tpscore::Points> queries, MatrixOut out) {
                  return tpscore::rbf_evaluate(s, queries, false, as_eigen(out));
              },
              "queries"_a, "out"_a.noconvert(), nb::call_guard<nb::gil_scoped_release>(),
              "Write f at (m, 3) queries into out (m, k), C-contiguous float64; returns the first "
              "row that overflowed, or -1.")
         .def("displacement_into",
-             [](const tpscore::RbfModel& s, PointsIn queries, MatrixOut out) {
+             [](const tpscore::RbfModel& s, In<tpscore::Points> queries, MatrixOut out) {
                  return tpscore::rbf_evaluate(s, queries, true, as_eigen(out));
              },
              "queries"_a, "out"_a.noconvert(), nb::call_guard<nb::gil_scoped_release>(),
              "Write f(x) - x at (m, 3) queries into out (m, 3); needs k == 3; returns the first "
              "row that overflowed, or -1.")
         .def("evaluation_matrix",
-             [](const tpscore::RbfModel& s, PointsIn queries) {
+             [](const tpscore::RbfModel& s, In<tpscore::Points> queries) {
                  return tpscore::rbf_evaluation_matrix(s, queries);
              },
              "queries"_a, nb::call_guard<nb::gil_scoped_release>(),
              "[phi(|x - p_j|) | 1 x y z] at (m, 3) queries: (m, n + 4).");
 
     m.def("rbf_fit",
-          [](PointsIn centres, MatrixIn values, tpscore::RbfKernel kernel, double epsilon,
-             double smoothing) {
+          [](In<tpscore::Points> centres, In<tpscore::MatrixX> values, tpscore::RbfKernel kernel,
+             double epsilon, double smoothing) {
               return tpscore::rbf_fit(centres, values, kernel, epsilon, smoothing);
           },
           "centres"_a, "values"_a, "kernel"_a, "epsilon"_a, "smoothing"_a,

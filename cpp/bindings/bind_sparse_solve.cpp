@@ -1,7 +1,8 @@
 // Bindings of the sparse direct solver. The matrix arrives validated from
 // tpscore.sparse as the CSC arrays of its lower triangle (int64 indices, float64
 // values); right-hand sides arrive Fortran-ordered so Eigen reads them in place.
-// Factorisation and solves run with the GIL released.
+// Factorisation and solves run with the GIL released; solutions are owning NumPy
+// arrays (arrays.hpp).
 #include <nanobind/eigen/dense.h>
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/string.h>
@@ -10,15 +11,24 @@
 #include <stdexcept>
 #include <string>
 
+#include "arrays.hpp"
 #include "tpscore/supernode_kernels.hpp"
 #include "tpscore/sparse_solve.hpp"
 
 namespace nb = nanobind;
 using namespace nb::literals;
+using tpscore_bindings::In;
 
 namespace {
-using IndexArray = Eigen::Ref<const Eigen::Matrix<std::int64_t, Eigen::Dynamic, 1>>;
-using ValueArray = Eigen::Ref<const Eigen::VectorXd>;
+using IndexArray = In<tpscore::IndexVector>;
+using ValueArray = In<tpscore::VectorX>;
+// Right-hand sides (n, k), column-major (Fortran order), one column per system.
+using Columns = In<Eigen::MatrixXd>;
+
+template <class Factor>
+Eigen::MatrixXd solve(const Factor& factor, Columns rhs) {
+    return factor.solve(rhs);
+}
 }  // namespace
 
 void bind_sparse_solve(nb::module_& m) {
@@ -31,14 +41,14 @@ void bind_sparse_solve(nb::module_& m) {
         "LDL^T factor of a sparse symmetric positive-definite matrix (use tpscore.SparseCholesky).")
         .def(
             "__init__",
-            [](SparseCholesky* self, std::int64_t n, const IndexArray& indptr,
-               const IndexArray& indices, const ValueArray& values, double pivot_tolerance) {
+            [](SparseCholesky* self, std::int64_t n, IndexArray indptr,
+               IndexArray indices, ValueArray values, double pivot_tolerance) {
                 nb::gil_scoped_release release;
                 new (self) SparseCholesky(n, indptr.data(), indices.data(), values.data(),
                                           pivot_tolerance);
             },
             "n"_a, "indptr"_a, "indices"_a, "values"_a, "pivot_tolerance"_a)
-        .def("solve", &SparseCholesky::solve, "rhs"_a, nb::call_guard<nb::gil_scoped_release>(),
+        .def("solve", &solve<SparseCholesky>, "rhs"_a, nb::call_guard<nb::gil_scoped_release>(),
              "Solve A X = B for B of shape (n, k); returns X (n, k).")
         .def_prop_ro("size", &SparseCholesky::size)
         .def_prop_ro("factor_nonzeros", &SparseCholesky::factor_nonzeros)
@@ -51,8 +61,8 @@ void bind_sparse_solve(nb::module_& m) {
         "tpscore.PatternCholesky).")
         .def(
             "__init__",
-            [](PatternCholesky* self, std::int64_t n, const IndexArray& indptr,
-               const IndexArray& indices) {
+            [](PatternCholesky* self, std::int64_t n, IndexArray indptr,
+               IndexArray indices) {
                 nb::gil_scoped_release release;
                 new (self) PatternCholesky(n, indptr.data(), indices.data(), nullptr);
             },
@@ -60,8 +70,8 @@ void bind_sparse_solve(nb::module_& m) {
             "Order the unknowns by approximate minimum degree.")
         .def(
             "__init__",
-            [](PatternCholesky* self, std::int64_t n, const IndexArray& indptr,
-               const IndexArray& indices, const IndexArray& ordering) {
+            [](PatternCholesky* self, std::int64_t n, IndexArray indptr,
+               IndexArray indices, IndexArray ordering) {
                 if (ordering.size() != n)
                     throw std::invalid_argument("ordering must hold n entries");
                 nb::gil_scoped_release release;
@@ -71,14 +81,14 @@ void bind_sparse_solve(nb::module_& m) {
             "Eliminate the unknowns in the given order (a permutation of 0 .. n-1).")
         .def(
             "factorize",
-            [](PatternCholesky& self, const ValueArray& values, double pivot_tolerance) {
+            [](PatternCholesky& self, ValueArray values, double pivot_tolerance) {
                 if (values.size() != self.stored_entries())
                     throw std::invalid_argument("values must hold one value per stored entry");
                 nb::gil_scoped_release release;
                 self.factorize(values.data(), pivot_tolerance);
             },
             "values"_a, "pivot_tolerance"_a)
-        .def("solve", &PatternCholesky::solve, "rhs"_a, nb::call_guard<nb::gil_scoped_release>(),
+        .def("solve", &solve<PatternCholesky>, "rhs"_a, nb::call_guard<nb::gil_scoped_release>(),
              "Solve A X = B with the last factor, for B of shape (n, k); returns X (n, k).")
         .def_prop_ro("size", &PatternCholesky::size)
         .def_prop_ro("stored_entries", &PatternCholesky::stored_entries)
@@ -102,22 +112,22 @@ void bind_sparse_solve(nb::module_& m) {
         "PatternCholesky).")
         .def(
             "__init__",
-            [](SimplicialPatternCholesky* self, std::int64_t n, const IndexArray& indptr,
-               const IndexArray& indices) {
+            [](SimplicialPatternCholesky* self, std::int64_t n, IndexArray indptr,
+               IndexArray indices) {
                 nb::gil_scoped_release release;
                 new (self) SimplicialPatternCholesky(n, indptr.data(), indices.data());
             },
             "n"_a, "indptr"_a, "indices"_a)
         .def(
             "factorize",
-            [](SimplicialPatternCholesky& self, const ValueArray& values, double pivot_tolerance) {
+            [](SimplicialPatternCholesky& self, ValueArray values, double pivot_tolerance) {
                 if (values.size() != self.stored_entries())
                     throw std::invalid_argument("values must hold one value per stored entry");
                 nb::gil_scoped_release release;
                 self.factorize(values.data(), pivot_tolerance);
             },
             "values"_a, "pivot_tolerance"_a)
-        .def("solve", &SimplicialPatternCholesky::solve, "rhs"_a,
+        .def("solve", &solve<SimplicialPatternCholesky>, "rhs"_a,
              nb::call_guard<nb::gil_scoped_release>(),
              "Solve A X = B with the last factor, for B of shape (n, k); returns X (n, k).")
         .def_prop_ro("size", &SimplicialPatternCholesky::size)

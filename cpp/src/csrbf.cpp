@@ -125,9 +125,10 @@ CSRBF::CSRBF(const PointsRef& centres, const MatrixRef& values, const PointsRef&
     // 1. Neighbours within the support. Phi is symmetric, so scattering the rows of
     //    the radius query into the rows of its transpose, in row order, gives every
     //    row's columns already sorted (a counting sort, no comparisons).
-    std::vector<std::int64_t> query_offsets, query_neighbours;
-    std::vector<double> query_distances;
-    tree_.query_radius(ordered, sigma, false, query_offsets, query_neighbours, query_distances);
+    RadiusNeighbours found = tree_.query_radius(ordered, sigma, false);
+    const IndexVector& query_offsets = found.offsets;
+    IndexVector& query_neighbours = found.indices;
+    VectorX& query_distances = found.distances;
     std::vector<std::int64_t> offsets(static_cast<std::size_t>(n) + 1, 0);
     for (const std::int64_t j : query_neighbours) ++offsets[static_cast<std::size_t>(rank[static_cast<std::size_t>(j)]) + 1];
     for (std::size_t r = 0; r < static_cast<std::size_t>(n); ++r) offsets[r + 1] += offsets[r];
@@ -137,7 +138,8 @@ CSRBF::CSRBF(const PointsRef& centres, const MatrixRef& values, const PointsRef&
     {
         std::vector<std::int64_t> cursor(offsets.begin(), offsets.end() - 1);
         for (std::size_t r = 0; r < static_cast<std::size_t>(n); ++r) {
-            for (auto e = static_cast<std::size_t>(query_offsets[r]); e < static_cast<std::size_t>(query_offsets[r + 1]); ++e) {
+            const auto row_index = static_cast<Eigen::Index>(r);
+            for (Eigen::Index e = query_offsets[row_index]; e < query_offsets[row_index + 1]; ++e) {
                 const auto row = static_cast<std::size_t>(rank[static_cast<std::size_t>(query_neighbours[e])]);
                 const auto slot = static_cast<std::size_t>(cursor[row]++);
                 columns[slot] = static_cast<std::int64_t>(r);
@@ -145,8 +147,8 @@ CSRBF::CSRBF(const PointsRef& centres, const MatrixRef& values, const PointsRef&
             }
         }
     }
-    query_neighbours = {};
-    query_distances = {};
+    query_neighbours.resize(0);
+    query_distances.resize(0);
 
     // Coincident centres make two equal rows; report the pair with the smallest
     // caller indices so the message does not depend on the tree.

@@ -319,13 +319,13 @@ void KDTree::count_radius(const PointsRef& queries, double radius, std::int64_t*
     });
 }
 
-void KDTree::query_radius(const PointsRef& queries, double radius, bool sort,
-                          std::vector<std::int64_t>& offsets, std::vector<std::int64_t>& indices,
-                          std::vector<double>& distances, int workers) const {
+RadiusNeighbours KDTree::query_radius(const PointsRef& queries, double radius, bool sort, int workers) const {
     const auto m = static_cast<std::size_t>(queries.rows());
     const std::size_t blocks = (m + kRadiusBlock - 1) / kRadiusBlock;
     std::vector<std::vector<std::pair<std::int64_t, double>>> found(blocks);
-    offsets.assign(m + 1, 0);
+    RadiusNeighbours result;
+    IndexVector& offsets = result.offsets;
+    offsets.setZero(static_cast<Eigen::Index>(m + 1));
     // Blocks are the unit of work; two blocks already pay for a thread.
     parallel_rows(blocks, 2, workers, [&](std::size_t block_begin, std::size_t block_end) {
         for (std::size_t b = block_begin; b < block_end; ++b) {
@@ -346,19 +346,20 @@ void KDTree::query_radius(const PointsRef& queries, double radius, bool sort,
         }
     });
     for (std::size_t r = 0; r < m; ++r) offsets[r + 1] += offsets[r];
-    const auto total = static_cast<std::size_t>(offsets[m]);
-    indices.resize(total);
-    distances.resize(total);
-    std::size_t pos = 0;
+    const auto total = static_cast<Eigen::Index>(offsets[m]);
+    result.indices.resize(total);
+    result.distances.resize(total);
+    Eigen::Index pos = 0;
     for (auto& out : found) {
         for (const auto& [index, d2] : out) {
-            indices[pos] = index;
-            distances[pos] = std::sqrt(d2);
+            result.indices[pos] = index;
+            result.distances[pos] = std::sqrt(d2);
             ++pos;
         }
         out.clear();
         out.shrink_to_fit();
     }
+    return result;
 }
 
 }  // namespace tpscore

@@ -93,10 +93,8 @@ class BSplineLattice:
         non-finite points). Its reference is :func:`tpscore.reference.lattice.evaluate`."""
         xy = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
         node_values = np.ascontiguousarray(np.asarray(node_values, dtype=np.float64).reshape(self.n_nodes, -1))
-        out = np.empty((len(xy), node_values.shape[1]))
-        _core.lattice_evaluate_into(xy, float(self.origin[0]), float(self.origin[1]), self.spacing,
-                                    self.shape[0], self.shape[1], node_values, out)
-        return out
+        return _core.lattice_evaluate(xy, float(self.origin[0]), float(self.origin[1]), self.spacing,
+                                      self.shape[0], self.shape[1], node_values)
 
     def bending(self) -> sp.csr_matrix:
         """(n_nodes, n_nodes) thin-plate bending energy of the node values (second
@@ -165,7 +163,6 @@ class LatticeSystem:
         self._first_node = np.ascontiguousarray(nodes[:, 0])
         self._weights = np.ascontiguousarray(weights)
         self.basis = lattice._stencil_matrix(nodes, weights)
-        self._gram = np.empty((lattice.n_nodes, len(_NEIGHBOUR_OFFSETS), len(SYMMETRIC_ENTRIES)))
         self._build_pattern()
         # nested dissection of the node grid, the three components of a node kept
         # together (they share one row structure, so they form one 3-wide block)
@@ -229,9 +226,9 @@ class LatticeSystem:
         blocks = np.ascontiguousarray(blocks, dtype=np.float64)
         if blocks.shape != (len(self._first_node), len(SYMMETRIC_ENTRIES)):
             raise ValueError(f"blocks must have shape ({len(self._first_node)}, 6), got {blocks.shape}")
-        _core.lattice_block_gram_into(self._first_node, self._weights, blocks,
-                                      self.lattice.shape[0], self.lattice.shape[1], self._gram)
-        return self._gram.ravel()[self._take]
+        gram = _core.lattice_block_gram(self._first_node, self._weights, blocks,
+                                        self.lattice.shape[0], self.lattice.shape[1])
+        return gram.ravel()[self._take]
 
     def matrix(self, values) -> sp.csc_matrix:
         """The symmetric (n, n) matrix with ``values`` in the pattern (for inspection)."""

@@ -108,6 +108,7 @@ def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     dtype = np.float64 if image.dtype == np.float64 else np.float32
     pixels = np.ascontiguousarray(image, dtype=dtype)  # exact for 8-bit and float32 images
     pixels = pixels.reshape(pixels.shape[:2] + (-1,))
-    out = np.empty((x.size, pixels.shape[2]), dtype=dtype)
-    _core.bilinear_sample_into(pixels, np.ascontiguousarray(x).reshape(-1), np.ascontiguousarray(y).reshape(-1), out)
+    height, width, channels = pixels.shape
+    out = _core.bilinear_sample(pixels.reshape(height * width, channels), height, width,
+                                np.ascontiguousarray(x).reshape(-1), np.ascontiguousarray(y).reshape(-1))
     return out.reshape(x.shape + image.shape[2:])

@@ -9,6 +9,13 @@
 
 namespace tpscore {
 
+/// The neighbours of a batch of queries in CSR form (see KDTree::query_radius).
+struct RadiusNeighbours {
+    IndexVector offsets;  ///< (m + 1,)
+    IndexVector indices;  ///< neighbour rows of the indexed points
+    VectorX distances;    ///< their distances to the query
+};
+
 /// Static kd-tree over a copy of (n, 3) points. Immutable after construction, so
 /// concurrent queries from several threads are safe.
 ///
@@ -66,11 +73,10 @@ public:
     /// Batched radius query in CSR form: the neighbours of query i (|p - q_i| <= radius)
     /// are indices[offsets[i] .. offsets[i+1]), with their (not squared) distances;
     /// sorted by (distance, index) when `sort` is true, else in a deterministic tree
-    /// order. `offsets` gets m + 1 entries. Threaded over query rows; output independent
+    /// order. `offsets` has m + 1 entries. Threaded over query rows; output independent
     /// of the thread count.
-    void query_radius(const PointsRef& queries, double radius, bool sort,
-                      std::vector<std::int64_t>& offsets, std::vector<std::int64_t>& indices,
-                      std::vector<double>& distances, int workers = 0) const;
+    RadiusNeighbours query_radius(const PointsRef& queries, double radius, bool sort,
+                                  int workers = 0) const;
 
     /// The indexed points in leaf order: row i is the original point order()[i].
     const Points& permuted_points() const { return points_; }

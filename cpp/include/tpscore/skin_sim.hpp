@@ -51,52 +51,57 @@ enum SkinMuscleKind : std::int64_t { kLinearMuscle = 0, kSphincterMuscle = 1 };
 ///   large steps; each step costs a sparse factorisation.
 enum class SkinIntegrator : int { symplectic = 0, implicit = 1 };
 
+/// The fields that define a skin system, listed once: X(type, name) for each, in the
+/// order the binding takes them. SkinSystemData declares them and the binding
+/// (bind_skin_sim.cpp) takes and copies them by expanding this list; Python lists
+/// them in tpscore.physics.system.SKIN_FIELDS.
+/// Shapes: n particles, s springs, a anchors, k muscles, v skull vertices, f triangles.
+#define TPSCORE_SKIN_FIELDS(X)                                                                     \
+    X(VectorX, masses)                /* (n,) */                                                   \
+    X(IndexVector, spring_first)      /* (s,) particle indices, first != second */                 \
+    X(IndexVector, spring_second)     /* (s,) */                                                   \
+    X(VectorX, spring_rest)           /* (s,) rest length */                                       \
+    X(VectorX, spring_stiffness)      /* (s,) slope below the knee */                              \
+    X(VectorX, spring_stiffness_high) /* (s,) slope beyond the knee */                             \
+    X(VectorX, spring_knee)           /* (s,) knee strain |l - l0| / l0 */                         \
+    X(VectorX, spring_damping)        /* (s,) along the spring */                                  \
+    X(IndexVector, anchor_particle)   /* (a,) */                                                   \
+    X(Points, anchor_target)          /* (a, 3) rest position of the anchor point */               \
+    X(IndexVector, anchor_bone)       /* (a,) SkinBone */                                          \
+    X(VectorX, anchor_stiffness)      /* (a,) */                                                   \
+    X(VectorX, anchor_damping)        /* (a,) */                                                   \
+    X(double, drag)                   /* mass-proportional damping rate (1 / time) */              \
+    X(IndexVector, muscle_kind)       /* (k,) SkinMuscleKind */                                    \
+    X(IndexVector, muscle_bone)       /* (k,) bone the attachment / epicentre is fixed to */       \
+    X(Points, muscle_point)           /* (k, 3) attachment (linear) or epicentre (sphincter) */    \
+    X(MatrixX, muscle_axes)           /* (k, 6) a sphincter's two unit axes (unused for linear) */ \
+    X(VectorX, muscle_max_force)      /* (k,) force at contraction 1, summed over the particles */ \
+    X(IndexVector, muscle_indptr)     /* (k + 1,) CSR rows of the muscles' particles */            \
+    X(IndexVector, muscle_particles)  /* particles each muscle pulls */                            \
+    X(VectorX, muscle_weights)        /* their weights (a muscle's weights sum to 1) */            \
+    X(Points, skull_vertices)         /* (v, 3) rest positions */                                  \
+    X(Points, skull_normals)          /* (v, 3) unit outward normals at rest */                    \
+    X(Faces, skull_faces)             /* (f, 3) triangles, oriented outward */                     \
+    X(IndexVector, skull_face_indptr) /* (v + 1,) CSR: the triangles the contact search */         \
+    X(IndexVector, skull_vertex_faces) /* tries near each vertex (its two-ring, in order) */       \
+    X(IndexVector, skull_face_rim)    /* (f,) bit k: the edge opposite corner k is on the rim */   \
+    X(IndexVector, skull_bone)        /* (v,) SkinBone */                                          \
+    X(IndexVector, skull_indptr)      /* (v + 1,) CSR vertex adjacency of the skull mesh */        \
+    X(IndexVector, skull_neighbours)  /* neighbour vertex indices */                               \
+    X(IndexVector, particle_foot)     /* (n,) first skull vertex to search from; -1: no contact */ \
+    X(VectorX, contact_stiffness)     /* (n,) k_c of the penalty (0: projection only) */           \
+    X(VectorX, contact_damping)       /* (n,) c_c of the penalty */                                \
+    X(VectorX, contact_margin)        /* (n,) height over the skull where the penalty starts */    \
+    X(Eigen::Vector3d, jaw_pivot)     /* a point on the jaw's axis */                              \
+    X(Eigen::Vector3d, jaw_axis)      /* unit axis (the head's x) */
+
 /// Everything that defines a skin system; all arrays are copied at construction.
 /// Preconditions (checked by the Python layer): sizes consistent, indices in range,
 /// masses > 0, stiffnesses and dampings >= 0, rest lengths > 0, axes unit length.
 struct SkinSystemData {
-    VectorX masses;  ///< (n,)
-
-    IndexVector spring_first, spring_second;  ///< (s,) particle indices, first != second
-    VectorX spring_rest;                      ///< (s,) rest length
-    VectorX spring_stiffness;                 ///< (s,) slope below the knee
-    VectorX spring_stiffness_high;            ///< (s,) slope beyond the knee
-    VectorX spring_knee;                      ///< (s,) knee strain |l - l0| / l0
-    VectorX spring_damping;                   ///< (s,) along the spring
-
-    IndexVector anchor_particle;  ///< (a,)
-    Points anchor_target;         ///< (a, 3) rest position of the anchor point
-    IndexVector anchor_bone;      ///< (a,) SkinBone
-    VectorX anchor_stiffness;     ///< (a,)
-    VectorX anchor_damping;       ///< (a,)
-
-    double drag = 0.0;  ///< mass-proportional damping rate (1 / time)
-
-    IndexVector muscle_kind;   ///< (k,) SkinMuscleKind
-    IndexVector muscle_bone;   ///< (k,) bone the attachment / epicentre is fixed to
-    Points muscle_point;       ///< (k, 3) attachment (linear) or epicentre (sphincter)
-    MatrixX muscle_axes;       ///< (k, 6) a sphincter's two unit axes (unused for linear)
-    VectorX muscle_max_force;  ///< (k,) force at contraction 1, summed over the particles
-    IndexVector muscle_indptr;     ///< (k + 1,) CSR rows of the muscles' particles
-    IndexVector muscle_particles;  ///< particles each muscle pulls
-    VectorX muscle_weights;        ///< their weights (a muscle's weights sum to 1)
-
-    Points skull_vertices;           ///< (v, 3) rest positions
-    Points skull_normals;            ///< (v, 3) unit outward normals at rest
-    Faces skull_faces;               ///< (f, 3) triangles, oriented outward
-    IndexVector skull_face_indptr;   ///< (v + 1,) CSR: the triangles the contact search
-    IndexVector skull_vertex_faces;  ///< tries near each vertex (its two-ring, in order)
-    IndexVector skull_face_rim;      ///< (f,) bit k: the edge opposite corner k is on the rim
-    IndexVector skull_bone;          ///< (v,) SkinBone
-    IndexVector skull_indptr;        ///< (v + 1,) CSR vertex adjacency of the skull mesh
-    IndexVector skull_neighbours;    ///< neighbour vertex indices
-    IndexVector particle_foot;       ///< (n,) first skull vertex to search from; -1: no contact
-    VectorX contact_stiffness;       ///< (n,) k_c of the penalty (0: projection only)
-    VectorX contact_damping;         ///< (n,) c_c of the penalty
-    VectorX contact_margin;          ///< (n,) height over the skull where the penalty starts
-
-    Eigen::Vector3d jaw_pivot = Eigen::Vector3d::Zero();  ///< a point on the jaw's axis
-    Eigen::Vector3d jaw_axis = Eigen::Vector3d::UnitX();  ///< unit axis (the head's x)
+#define TPSCORE_SKIN_MEMBER(T, name) T name{};
+    TPSCORE_SKIN_FIELDS(TPSCORE_SKIN_MEMBER)
+#undef TPSCORE_SKIN_MEMBER
 
     /// Per particle, the stiffness a unit displacement meets at rest (sum of the low
     /// slopes of its springs and anchors): the rest detector's force-to-length scale.

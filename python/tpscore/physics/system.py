@@ -11,12 +11,13 @@ hand (one spring, a chain).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
 from ..skin_sim import INTEGRATORS, compiled_skin_system
 
-__all__ = ["SkinArrays", "SKULL", "MANDIBLE", "LINEAR", "SPHINCTER", "INTEGRATORS", "rim_edges"]
+__all__ = ["SkinArrays", "SKIN_FIELDS", "SKULL", "MANDIBLE", "LINEAR", "SPHINCTER", "INTEGRATORS", "rim_edges"]
 
 SKULL, MANDIBLE = 0, 1
 LINEAR, SPHINCTER = 0, 1
@@ -69,101 +70,223 @@ def rim_edges(faces: np.ndarray, n: int, bones=None) -> np.ndarray:
     return rim
 
 
+#: Dataclass defaults of :data:`SKIN_FIELDS`: no default, or an empty array of the
+#: field's shape.
+REQUIRED, EMPTY = "required", "empty"
+
+
+class SkinField(NamedTuple):
+    """One field of :class:`SkinArrays`, as :data:`SKIN_FIELDS` lists it.
+
+    ``kind`` is "float" (float64, finite), "index" (int64 in ``[0, upper)``, or from -1
+    with ``allow_negative``), "indptr" (int64 CSR offsets: nondecreasing from 0) or
+    "scalar" (a finite float). ``shape`` holds numbers and size letters: n particles,
+    s springs, a anchors, k muscles, e a muscle's entries, v skull vertices, f skull
+    triangles, t the triangles' entries, u the neighbours' entries, "k + 1" one more
+    than k; None is the array's own shape. A field with ``sizes`` defines that letter
+    (its length; an indptr's last entry). ``reshape``: any array of the right number of
+    entries will do; ``broadcast``: a number stands for every row. ``default`` is the
+    dataclass default; a field left None is filled with ``missing``.
+    """
+
+    name: str
+    kind: str
+    shape: tuple | None
+    doc: str
+    upper: int | str | None = None
+    nonnegative: bool = False
+    sizes: str | None = None
+    default: object = EMPTY
+    missing: float | None = None
+    allow_negative: bool = False
+    reshape: bool = False
+    broadcast: bool = False
+
+
+_F = SkinField
+#: The fields of a skin system, listed once: :class:`SkinArrays` is built from this table,
+#: validated by it and handed to the compiled core by it (whose own list is
+#: ``TPSCORE_SKIN_FIELDS`` in ``cpp/include/tpscore/skin_sim.hpp``, in the same order).
+SKIN_FIELDS = (
+    _F("masses", "float", None, "Particle masses (> 0, at least one).", default=REQUIRED),
+    _F("spring_first", "index", ("s",), "The particles each spring joins (different).", "n", sizes="s",
+       default=REQUIRED),
+    _F("spring_second", "index", ("s",), "", "n", default=REQUIRED),
+    _F("spring_rest", "float", ("s",), "Rest lengths (> 0).", nonnegative=True, default=REQUIRED),
+    _F("spring_stiffness", "float", ("s",), "Slope of the biphasic law below the knee.", nonnegative=True,
+       default=REQUIRED),
+    _F("spring_stiffness_high", "float", ("s",), "Slope beyond the knee (>= spring_stiffness).", nonnegative=True,
+       default=REQUIRED),
+    _F("spring_knee", "float", ("s",), "Knee strain |l - l0| / l0 where the slope changes.", nonnegative=True,
+       default=REQUIRED),
+    _F("spring_damping", "float", ("s",), "Damping along the spring.", nonnegative=True, default=REQUIRED),
+    _F("anchor_particle", "index", ("a",), "", "n", sizes="a"),
+    _F("anchor_target", "float", ("a", 3), "Rest position of each anchor point, fixed to anchor_bone."),
+    _F("anchor_bone", "index", ("a",), "SKULL or MANDIBLE.", 2),
+    _F("anchor_stiffness", "float", ("a",), "", nonnegative=True),
+    _F("anchor_damping", "float", ("a",), "", nonnegative=True),
+    _F("drag", "scalar", (), "Mass-proportional damping rate (1/s), >= 0.", default=0.0),
+    _F("muscle_kind", "index", ("k",), "LINEAR or SPHINCTER.", 2, sizes="k"),
+    _F("muscle_bone", "index", ("k",), "SKULL or MANDIBLE.", 2),
+    _F("muscle_point", "float", ("k", 3), "Attachment (linear) or epicentre (sphincter)."),
+    _F("muscle_axes", "float", ("k", 6), "A sphincter's two unit axes (zeros for a linear muscle)."),
+    _F("muscle_max_force", "float", ("k",), "Total force at contraction 1.", nonnegative=True),
+    _F("muscle_indptr", "indptr", ("k + 1",), "CSR rows of each muscle's particles and weights.", sizes="e"),
+    _F("muscle_particles", "index", ("e",), "", "n"),
+    _F("muscle_weights", "float", ("e",), "A muscle's weights sum to 1.", nonnegative=True),
+    _F("skull_vertices", "float", ("v", 3), "Skull vertices at rest.", sizes="v"),
+    _F("skull_normals", "float", ("v", 3), "Their unit outward normals."),
+    _F("skull_faces", "index", ("f", 3), "The skull's triangles, oriented outward.", "v", sizes="f", reshape=True),
+    _F("skull_face_indptr", "indptr", ("v + 1",), "CSR list of the triangles around each skull vertex.",
+       sizes="t", default=None, missing=0),
+    _F("skull_vertex_faces", "index", ("t",), "", "f"),
+    _F("skull_face_rim", "index", ("f",), "Per triangle, bit k set when the edge opposite corner k is on the "
+       "skull's rim (in one triangle only).", 8, default=None, missing=0),
+    _F("skull_bone", "index", ("v",), "SKULL or MANDIBLE per skull vertex.", 2),
+    _F("skull_indptr", "indptr", ("v + 1",), "CSR vertex adjacency of the skull mesh.", sizes="u"),
+    _F("skull_neighbours", "index", ("u",), "", "v"),
+    _F("particle_foot", "index", ("n",), "First skull vertex of each particle's contact search; -1: no contact.",
+       "v", default=None, missing=-1, allow_negative=True),
+    _F("contact_stiffness", "float", ("n",), "Stiffness of the contact penalty per particle (0: projection only).",
+       nonnegative=True, default=None, missing=0.0),
+    _F("contact_damping", "float", ("n",), "Damping of the contact penalty per particle.", nonnegative=True,
+       default=None, missing=0.0),
+    _F("contact_margin", "float", ("n",), "Height over the skull below which the penalty pushes each particle out "
+       "(a number: the same for all).", nonnegative=True, default=0.0, broadcast=True),
+    _F("jaw_pivot", "float", (3,), "A point on the jaw's axis."),
+    _F("jaw_axis", "float", (3,), "The jaw's unit axis.", default=(1.0, 0.0, 0.0)),
+)
+del _F
+
+
+def _dimension(term, sizes) -> int:
+    """A number of a shape rule: a number, a size letter or "letter + 1"."""
+    if isinstance(term, int):
+        return term
+    letter, _, plus = term.partition(" + ")
+    return sizes[letter] + (int(plus) if plus else 0)
+
+
+def _default(spec: SkinField):
+    """The dataclass default of a field: an empty array of its shape, or its value."""
+    if spec.default is REQUIRED:
+        return field()
+    if spec.default is EMPTY:
+        dtype = np.float64 if spec.kind == "float" else np.int64
+        shape = tuple(_dimension(term, {letter: 0 for letter in "nsakevftu"}) for term in spec.shape)
+        return field(default_factory=lambda: np.zeros(shape, dtype=dtype))
+    if isinstance(spec.default, tuple):
+        return field(default_factory=lambda: np.array(spec.default))
+    return field(default=spec.default)
+
+
+def _shape_text(spec: SkinField) -> str:
+    """A field's shape and type as its documentation spells it: "(s,) int"."""
+    if spec.kind == "scalar":
+        return "float"
+    dims = [str(term) for term in spec.shape or ("n",)]
+    text = "(" + ", ".join(dims) + ("," if len(dims) == 1 else "") + ")"
+    return text + (" int" if spec.kind in ("index", "indptr") else "")
+
+
+def _attributes_doc() -> str:
+    """The numpydoc Attributes section of :class:`SkinArrays`, from the table."""
+    lines = []
+    for spec in SKIN_FIELDS:
+        lines.append(f"    {spec.name} : {_shape_text(spec)}")
+        if spec.doc:
+            lines.append(f"        {spec.doc}")
+    return "\n".join(lines)
+
+
+def _with_skin_fields(cls):
+    """Give the class one dataclass field per row of :data:`SKIN_FIELDS`."""
+    cls.__annotations__ = {spec.name: "float" if spec.kind == "scalar" else "np.ndarray" for spec in SKIN_FIELDS}
+    for spec in SKIN_FIELDS:
+        setattr(cls, spec.name, _default(spec))
+    if cls.__doc__:  # None under python -OO
+        cls.__doc__ = cls.__doc__.replace("{attributes}", _attributes_doc())
+    return cls
+
+
+def _check_field(spec: SkinField, value, sizes):
+    """One field converted to its canonical type and checked, as its row says."""
+    if spec.kind == "scalar":
+        number = float(value)
+        if not np.isfinite(number) or number < 0:
+            raise ValueError(f"{spec.name} must be finite and >= 0, got {value!r}")
+        return number
+    if spec.sizes and spec.kind != "indptr":
+        flat = np.asarray(value).reshape((-1,) + tuple(spec.shape[1:]))
+        sizes[spec.sizes] = len(flat)
+        value = flat if spec.reshape else value
+    shape = None if spec.shape is None else tuple(_dimension(term, sizes) for term in spec.shape)
+    if value is None and spec.missing is not None:
+        value = np.full(shape, spec.missing, dtype=np.float64 if spec.kind == "float" else np.int64)
+    if spec.kind == "float":
+        if spec.broadcast:
+            value = np.broadcast_to(np.asarray(value, dtype=np.float64), shape)
+        out = _float(value, np.shape(value) if shape is None else shape, spec.name)
+        if spec.nonnegative and np.any(out < 0):
+            raise ValueError(f"{spec.name} must be >= 0")
+        return out
+    if spec.kind == "indptr":
+        out = np.ascontiguousarray(value, dtype=np.int64)
+        if out.shape != shape or out[0] != 0 or np.any(np.diff(out) < 0):
+            raise ValueError(f"{spec.name} must be a nondecreasing ({spec.shape[0]},) = {shape} array from 0")
+        sizes[spec.sizes] = int(out[-1])
+        return out
+    upper = spec.upper if isinstance(spec.upper, int) else max(sizes[spec.upper], 1)
+    return _index(value, shape, spec.name, upper, allow_negative=spec.allow_negative)
+
+
+def _check_relations(name: str, out: dict) -> None:
+    """The checks that relate a field to others, run once the named field is checked."""
+    if name == "masses":
+        masses = out["masses"]
+        if masses.ndim != 1 or len(masses) == 0 or not (masses > 0).all():
+            raise ValueError("masses must be a non-empty 1-D array of values > 0")
+    elif name == "spring_second":
+        first, second = out["spring_first"], out["spring_second"]
+        if np.any(first == second):
+            raise ValueError(f"a spring joins particle {first[first == second][0]} to itself")
+    elif name == "spring_damping":
+        if np.any(out["spring_rest"] <= 0):
+            raise ValueError("spring_rest must be > 0 (a spring of zero length has no direction)")
+        if np.any(out["spring_stiffness_high"] < out["spring_stiffness"]):
+            raise ValueError("spring_stiffness_high must be >= spring_stiffness (the law stiffens)")
+    elif name == "muscle_weights":
+        sphincter = out["muscle_kind"] == SPHINCTER
+        if sphincter.any():
+            axes = out["muscle_axes"][sphincter].reshape(-1, 2, 3)
+            if not np.allclose(np.linalg.norm(axes, axis=2), 1.0, atol=1e-9):
+                raise ValueError("muscle_axes of a sphincter must be two unit vectors")
+    elif name == "skull_normals":
+        normals = out["skull_normals"]
+        if len(normals) and not np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-9):
+            raise ValueError("skull_normals must be unit vectors")
+    elif name == "particle_foot":
+        if len(out["skull_vertices"]) == 0 and np.any(out["particle_foot"] >= 0):
+            raise ValueError("particle_foot refers to skull vertices, but there is no skull")
+    elif name == "jaw_axis":
+        if not np.isclose(np.linalg.norm(out["jaw_axis"]), 1.0, atol=1e-9):
+            raise ValueError("jaw_axis must be a unit vector")
+
+
 @dataclass(frozen=True, eq=False)
+@_with_skin_fields
 class SkinArrays:
     """Everything that defines a skin system (units: mm, g, s; forces in g mm / s^2).
 
-    Shapes: n particles, s springs, a anchors, k muscles, v skull vertices. Every
-    array is converted and checked by :meth:`validated`; the compiled core assumes that
-    was done.
+    Shapes: n particles, s springs, a anchors, k muscles, v skull vertices, f skull
+    triangles; e, t and u count the entries of the CSR lists. Every array is converted
+    and checked by :meth:`validated`; the compiled core assumes that was done. The
+    fields are the rows of :data:`SKIN_FIELDS`.
 
     Attributes
     ----------
-    masses : (n,) > 0
-    spring_first, spring_second : (s,) int
-        The particles each spring joins (different).
-    spring_rest : (s,) > 0
-        Rest lengths.
-    spring_stiffness, spring_stiffness_high : (s,) >= 0
-        Slopes of the biphasic law below and beyond the knee (high >= low).
-    spring_knee : (s,) >= 0
-        Knee strain |l - l0| / l0 where the slope changes.
-    spring_damping : (s,) >= 0
-        Damping along the spring.
-    anchor_particle : (a,) int
-    anchor_target : (a, 3)
-        Rest position of each anchor point, fixed to ``anchor_bone`` (SKULL or MANDIBLE).
-    anchor_stiffness, anchor_damping : (a,) >= 0
-    drag : float >= 0
-        Mass-proportional damping rate (1/s).
-    muscle_kind, muscle_bone : (k,) int
-        LINEAR or SPHINCTER; SKULL or MANDIBLE.
-    muscle_point : (k, 3)
-        Attachment (linear) or epicentre (sphincter).
-    muscle_axes : (k, 6)
-        A sphincter's two unit axes (zeros for a linear muscle).
-    muscle_max_force : (k,) >= 0
-        Total force at contraction 1.
-    muscle_indptr : (k + 1,), muscle_particles, muscle_weights : (e,)
-        CSR list of each muscle's particles and weights (a muscle's weights sum to 1).
-    skull_vertices, skull_normals : (v, 3)
-        Skull vertices at rest and their unit outward normals.
-    skull_faces : (f, 3) int
-        The skull's triangles, oriented outward.
-    skull_face_indptr : (v + 1,), skull_vertex_faces : (e,)
-        CSR list of the triangles around each skull vertex.
-    skull_face_rim : (f,) int
-        Per triangle, bit k set when the edge opposite corner k is on the skull's rim
-        (in one triangle only).
-    skull_bone : (v,) int
-    skull_indptr : (v + 1,), skull_neighbours : (e,)
-        CSR vertex adjacency of the skull mesh.
-    particle_foot : (n,) int
-        First skull vertex of each particle's contact search; -1: no contact.
-    contact_stiffness, contact_damping : (n,) >= 0
-        Stiffness and damping of the contact penalty per particle (0: projection only).
-    contact_margin : (n,) >= 0
-        Height over the skull below which the penalty pushes each particle out.
-    jaw_pivot : (3,), jaw_axis : (3,) unit
+{attributes}
     """
-
-    masses: np.ndarray
-    spring_first: np.ndarray
-    spring_second: np.ndarray
-    spring_rest: np.ndarray
-    spring_stiffness: np.ndarray
-    spring_stiffness_high: np.ndarray
-    spring_knee: np.ndarray
-    spring_damping: np.ndarray
-    anchor_particle: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    anchor_target: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    anchor_bone: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    anchor_stiffness: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    anchor_damping: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    drag: float = 0.0
-    muscle_kind: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    muscle_bone: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    muscle_point: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    muscle_axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
-    muscle_max_force: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    muscle_indptr: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
-    muscle_particles: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    muscle_weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    skull_vertices: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    skull_normals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    skull_faces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))
-    skull_face_indptr: np.ndarray | None = None
-    skull_vertex_faces: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    skull_face_rim: np.ndarray | None = None
-    skull_bone: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    skull_indptr: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
-    skull_neighbours: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    particle_foot: np.ndarray | None = None
-    contact_stiffness: np.ndarray | None = None
-    contact_damping: np.ndarray | None = None
-    contact_margin: np.ndarray | float = 0.0
-    jaw_pivot: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    jaw_axis: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
 
     @property
     def particles(self) -> int:
@@ -181,99 +304,12 @@ class SkinArrays:
         ValueError
             Naming the first field that is malformed.
         """
-        masses = _float(self.masses, np.shape(self.masses), "masses")
-        if masses.ndim != 1 or len(masses) == 0 or not (masses > 0).all():
-            raise ValueError("masses must be a non-empty 1-D array of values > 0")
-        n = len(masses)
-        s = len(np.asarray(self.spring_first).reshape(-1))
-        first = _index(self.spring_first, (s,), "spring_first", n)
-        second = _index(self.spring_second, (s,), "spring_second", n)
-        if np.any(first == second):
-            raise ValueError(f"a spring joins particle {first[first == second][0]} to itself")
-        out = dict(masses=masses, spring_first=first, spring_second=second)
-        for name in ("spring_rest", "spring_stiffness", "spring_stiffness_high", "spring_knee", "spring_damping"):
-            out[name] = _float(getattr(self, name), (s,), name)
-            if np.any(out[name] < 0):
-                raise ValueError(f"{name} must be >= 0")
-        if np.any(out["spring_rest"] <= 0):
-            raise ValueError("spring_rest must be > 0 (a spring of zero length has no direction)")
-        if np.any(out["spring_stiffness_high"] < out["spring_stiffness"]):
-            raise ValueError("spring_stiffness_high must be >= spring_stiffness (the law stiffens)")
-        a = len(np.asarray(self.anchor_particle).reshape(-1))
-        out["anchor_particle"] = _index(self.anchor_particle, (a,), "anchor_particle", n)
-        out["anchor_target"] = _float(self.anchor_target, (a, 3), "anchor_target")
-        out["anchor_bone"] = _index(self.anchor_bone, (a,), "anchor_bone", 2)
-        for name in ("anchor_stiffness", "anchor_damping"):
-            out[name] = _float(getattr(self, name), (a,), name)
-            if np.any(out[name] < 0):
-                raise ValueError(f"{name} must be >= 0")
-        drag = float(self.drag)
-        if not np.isfinite(drag) or drag < 0:
-            raise ValueError(f"drag must be finite and >= 0, got {self.drag!r}")
-        out["drag"] = drag
-        k = len(np.asarray(self.muscle_kind).reshape(-1))
-        out["muscle_kind"] = _index(self.muscle_kind, (k,), "muscle_kind", 2)
-        out["muscle_bone"] = _index(self.muscle_bone, (k,), "muscle_bone", 2)
-        out["muscle_point"] = _float(self.muscle_point, (k, 3), "muscle_point")
-        out["muscle_axes"] = _float(self.muscle_axes, (k, 6), "muscle_axes")
-        out["muscle_max_force"] = _float(self.muscle_max_force, (k,), "muscle_max_force")
-        if np.any(out["muscle_max_force"] < 0):
-            raise ValueError("muscle_max_force must be >= 0")
-        indptr = np.ascontiguousarray(self.muscle_indptr, dtype=np.int64)
-        if indptr.shape != (k + 1,) or indptr[0] != 0 or np.any(np.diff(indptr) < 0):
-            raise ValueError(f"muscle_indptr must be a nondecreasing (k + 1,) = ({k + 1},) array from 0")
-        e = int(indptr[-1])
-        out["muscle_indptr"] = indptr
-        out["muscle_particles"] = _index(self.muscle_particles, (e,), "muscle_particles", n)
-        out["muscle_weights"] = _float(self.muscle_weights, (e,), "muscle_weights")
-        if np.any(out["muscle_weights"] < 0):
-            raise ValueError("muscle_weights must be >= 0")
-        sphincter = out["muscle_kind"] == SPHINCTER
-        if sphincter.any():
-            axes = out["muscle_axes"][sphincter].reshape(-1, 2, 3)
-            if not np.allclose(np.linalg.norm(axes, axis=2), 1.0, atol=1e-9):
-                raise ValueError("muscle_axes of a sphincter must be two unit vectors")
-        v = len(np.asarray(self.skull_vertices).reshape(-1, 3))
-        out["skull_vertices"] = _float(self.skull_vertices, (v, 3), "skull_vertices")
-        out["skull_normals"] = _float(self.skull_normals, (v, 3), "skull_normals")
-        if v and not np.allclose(np.linalg.norm(out["skull_normals"], axis=1), 1.0, atol=1e-9):
-            raise ValueError("skull_normals must be unit vectors")
-        out["skull_bone"] = _index(self.skull_bone, (v,), "skull_bone", 2)
-        f = len(np.asarray(self.skull_faces).reshape(-1, 3))
-        out["skull_faces"] = _index(np.asarray(self.skull_faces).reshape(-1, 3), (f, 3), "skull_faces", max(v, 1))
-        face_indptr = np.zeros(v + 1, dtype=np.int64) if self.skull_face_indptr is None else \
-            np.ascontiguousarray(self.skull_face_indptr, dtype=np.int64)
-        if face_indptr.shape != (v + 1,) or face_indptr[0] != 0 or np.any(np.diff(face_indptr) < 0):
-            raise ValueError(f"skull_face_indptr must be a nondecreasing ({v + 1},) array from 0")
-        out["skull_face_indptr"] = face_indptr
-        out["skull_vertex_faces"] = _index(self.skull_vertex_faces, (int(face_indptr[-1]),), "skull_vertex_faces",
-                                           max(f, 1))
-        rim = np.zeros(f, dtype=np.int64) if self.skull_face_rim is None else self.skull_face_rim
-        out["skull_face_rim"] = _index(rim, (f,), "skull_face_rim", 8)
-        skull_indptr = np.ascontiguousarray(self.skull_indptr, dtype=np.int64)
-        if skull_indptr.shape != (v + 1,) or skull_indptr[0] != 0 or np.any(np.diff(skull_indptr) < 0):
-            raise ValueError(f"skull_indptr must be a nondecreasing ({v + 1},) array from 0")
-        out["skull_indptr"] = skull_indptr
-        out["skull_neighbours"] = _index(self.skull_neighbours, (int(skull_indptr[-1]),), "skull_neighbours",
-                                         max(v, 1))
-        foot = np.full(n, -1, dtype=np.int64) if self.particle_foot is None else self.particle_foot
-        out["particle_foot"] = _index(foot, (n,), "particle_foot", max(v, 1), allow_negative=True)
-        if v == 0 and np.any(out["particle_foot"] >= 0):
-            raise ValueError("particle_foot refers to skull vertices, but there is no skull")
-        for name in ("contact_stiffness", "contact_damping"):
-            value = getattr(self, name)
-            out[name] = _float(np.zeros(n) if value is None else value, (n,), name)
-            if np.any(out[name] < 0):
-                raise ValueError(f"{name} must be >= 0")
-        margin = np.broadcast_to(np.asarray(self.contact_margin, dtype=np.float64), (n,))
-        out["contact_margin"] = _float(margin, (n,), "contact_margin")
-        if np.any(out["contact_margin"] < 0):
-            raise ValueError("contact_margin must be >= 0")
-        out["jaw_pivot"] = _float(self.jaw_pivot, (3,), "jaw_pivot")
-        axis = _float(self.jaw_axis, (3,), "jaw_axis")
-        if not np.isclose(np.linalg.norm(axis), 1.0, atol=1e-9):
-            raise ValueError("jaw_axis must be a unit vector")
-        out["jaw_axis"] = axis
+        out, sizes = {}, {}
+        for spec in SKIN_FIELDS:
+            out[spec.name] = _check_field(spec, getattr(self, spec.name), sizes)
+            if spec.name == "masses":
+                sizes["n"] = len(out["masses"]) if out["masses"].ndim else 0
+            _check_relations(spec.name, out)
         return SkinArrays(**out)
 
     def core(self):
