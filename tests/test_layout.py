@@ -145,3 +145,19 @@ def test_the_package_has_no_import_cycle_at_module_level():
     for node in sorted(graph):
         if node not in state:
             visit(node, [])
+
+
+#: The longest a function may be (lines, its docstring included): a longer one is a
+#: sequence of steps that wants names.
+MAX_FUNCTION_LINES = 120
+
+
+def test_no_function_is_longer_than_the_limit():
+    long = []
+    for path in _sources():
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                lines = node.end_lineno - node.lineno + 1
+                if lines > MAX_FUNCTION_LINES:
+                    long.append(f"{_module(path)}.{node.name}: {lines} lines")
+    assert not long, long

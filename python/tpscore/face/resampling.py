@@ -141,39 +141,10 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
     # one outlier far out would stretch the grid over it, leaving no vertex on the face,
     # and overflow the lattice indices below: judged on the valid points first
     _check_extent(grid[valid] if grid is not None else cloud)
-    lattice = None
-    if grid is not None:
-        lattice = _fit_lattice(grid, valid)
-        if lattice is None:
-            cloud = grid[valid]
-            cloud_uv = None if source_uv is None else source_uv[valid]
-            # a lattice whose rows and columns do not run along y and x (a depth image
-            # turned into the canonical frame) is still one
-            detected = _cloud_to_lattice(cloud, cloud_uv)
-            if detected is not None:
-                grid, valid, source_uv, lattice = detected
-            else:
-                grid = None
-    else:
-        detected = _cloud_to_lattice(cloud, cloud_uv)
-        if detected is not None:
-            grid, valid, source_uv, lattice = detected
-
+    grid, valid, source_uv, cloud, cloud_uv, lattice = _source_lattice(grid, valid, source_uv, cloud, cloud_uv)
+    x_min, x_max, y_min, y_max = _valid_extent(valid, cloud, lattice)
     if lattice is not None:
-        n_valid = int(np.count_nonzero(valid))
-        lattice, (x_min, x_max, y_min, y_max) = lattice
-    else:
-        n_valid = len(cloud)
-    if n_valid < 3:
-        raise ValueError(f"scan_or_points has {n_valid} valid point(s); at least 3 are needed")
-    if lattice is None:
-        x_min, y_min = cloud[:, 0].min(), cloud[:, 1].min()
-        x_max, y_max = cloud[:, 0].max(), cloud[:, 1].max()
-    if not (x_max > x_min and y_max > y_min):
-        raise ValueError(
-            "scan_or_points: the valid points have no extent in x or y "
-            f"(x in [{x_min}, {x_max}], y in [{y_min}, {y_max}])"
-        )
+        lattice = lattice[0]
     xs = np.linspace(x_min, x_max, width)
     ys = np.linspace(y_max, y_min, height)
 
@@ -196,6 +167,50 @@ def resample_scan(scan_or_points, landmarks=None, shape=DEFAULT_GRID_SHAPE, *,
 
 
 # --------------------------------------------------------------------------- helpers
+
+def _source_lattice(grid, valid, source_uv, cloud, cloud_uv):
+    """The source as a regular lattice where it is one (a grid whose rows and columns
+    run along y and x, or a cloud or turned depth image whose points lie on a lattice):
+    (grid, valid, source_uv, cloud, cloud_uv, lattice), with ``lattice`` (the fit and
+    its x, y extent) None and ``grid`` None for an unstructured cloud."""
+    lattice = None
+    if grid is not None:
+        lattice = _fit_lattice(grid, valid)
+        if lattice is None:
+            cloud = grid[valid]
+            cloud_uv = None if source_uv is None else source_uv[valid]
+            # a lattice whose rows and columns do not run along y and x (a depth image
+            # turned into the canonical frame) is still one
+            detected = _cloud_to_lattice(cloud, cloud_uv)
+            if detected is not None:
+                grid, valid, source_uv, lattice = detected
+            else:
+                grid = None
+    else:
+        detected = _cloud_to_lattice(cloud, cloud_uv)
+        if detected is not None:
+            grid, valid, source_uv, lattice = detected
+    return grid, valid, source_uv, cloud, cloud_uv, lattice
+
+
+def _valid_extent(valid, cloud, lattice) -> tuple:
+    """x_min, x_max, y_min, y_max of the valid points; refuses fewer than three or no
+    extent in x or y."""
+    n_valid = int(np.count_nonzero(valid)) if lattice is not None else len(cloud)
+    if n_valid < 3:
+        raise ValueError(f"scan_or_points has {n_valid} valid point(s); at least 3 are needed")
+    if lattice is not None:
+        x_min, x_max, y_min, y_max = lattice[1]
+    else:
+        x_min, y_min = cloud[:, 0].min(), cloud[:, 1].min()
+        x_max, y_max = cloud[:, 0].max(), cloud[:, 1].max()
+    if not (x_max > x_min and y_max > y_min):
+        raise ValueError(
+            "scan_or_points: the valid points have no extent in x or y "
+            f"(x in [{x_min}, {x_max}], y in [{y_min}, {y_max}])"
+        )
+    return x_min, x_max, y_min, y_max
+
 
 def _split_input(scan_or_points, uv):
     """(grid, valid, grid_uv, cloud, cloud_uv): one of grid or cloud is None."""
