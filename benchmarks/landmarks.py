@@ -1,6 +1,6 @@
 """Accuracy of the automatic landmarks (tpscore.detect_landmarks) on generated
 Bosphorus-format scans: per landmark, the distance to the true landmarks (the scans'
-``_gt.npz`` sidecars, ``landmarks_true``), for development subjects (0-9, the ones
+``_gt.npz`` sidecars, ``landmarks_true``), each scan read with its colour image, for development subjects (0-9, the ones
 the detector was tuned on) and held-out subjects (10-19), neutral and expressive.
 
     python benchmarks/landmarks.py [--scans FOLDER] [--out bench-output/landmarks.md]
@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 
 from tpscore import detect_landmarks
-from tpscore.face.io import read_bnt
 from tpscore.face.landmarks import LANDMARK_NAMES
 
 from fidelity import ensure_scans
@@ -38,7 +37,7 @@ def measure(scans: Path, subjects, codes) -> np.ndarray:
             if not stem.with_suffix(".bnt").exists():
                 continue
             truth = np.load(f"{stem}_gt.npz")["landmarks_true"]
-            found = detect_landmarks(read_bnt(stem.with_suffix(".bnt")))
+            found = detect_landmarks(stem.with_suffix(".bnt"))  # with the colour image beside it
             rows.append(np.linalg.norm(found - truth, axis=1))
     return np.array(rows)
 

@@ -111,3 +111,17 @@ def test_load_scan_auto_detects(tmp_path, neutral):
         warnings.simplefilter("error", tpscore.LandmarksDetectedWarning)
         given = tpscore.load_scan(tmp_path / "face.bnt", shape=(80, 80))
     assert np.isfinite(given.landmarks).all()
+
+
+def test_the_colour_image_brings_the_brows_lips_and_eyes_closer(tmp_path):
+    from tpscore.face.io import read_bnt
+    from tpscore.showcase.demo_faces import make_demo_scan
+
+    for person, expression in [(0, None), (1, None), (0, {"12": 1.0})]:
+        scan = make_demo_scan(person, expression, seed=5)
+        path = scan.write(tmp_path, f"person{person}")  # the .bnt with its .png beside it
+        geometry = _errors(detect_landmarks(read_bnt(path)), scan.landmarks)   # no image: geometry alone
+        colour = _errors(detect_landmarks(path), scan.landmarks)              # the image beside it is read
+        # measured: geometry 8.7 / 4.6 / 9.5 mm on average, with colour 2.7 / 2.6 / 3.0
+        assert np.nanmean(colour) < 3.5 and np.nanmean(colour) < 0.8 * np.nanmean(geometry)
+        assert np.isfinite(colour).sum() >= 20

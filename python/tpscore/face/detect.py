@@ -23,13 +23,18 @@ procedural faces):
 """
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 
 from .._validation import as_array
 from ..geometry import similarity_transform
 from ..spatial import KDTree
 from .landmarks import N_LANDMARKS, landmark_index
+from . import detect_colour as _colour
 from . import detect_cues as _cues
+from .image import as_colour_image, check_image_fits
 
 __all__ = ["detect_landmarks", "LandmarksDetectedWarning", "DETECT_REGIONS"]
 
@@ -127,33 +132,11 @@ def _even_sample(points: np.ndarray, count: int) -> np.ndarray:
     return points[::step]
 
 
-def detect_landmarks(scan, *, image=None, uv=None) -> np.ndarray:
-    """The 22 Bosphorus landmarks of a raw scan, found from its geometry.
-
-    Parameters
-    ----------
-    scan : BntScan, FaceGrid, (H, W, 3) grid or (n, 3) points
-        The scan in its own frame: millimetres, the face looking toward +z (within a
-        few tens of degrees), +y up. A grid's NaN points (or those outside its
-        ``valid``/``mask``) are holes.
-    image, uv : optional
-        Accepted for the scan's colour image and its u,v; the present cues are
-        geometric and do not read them.
-
-    Returns
-    -------
-    (22, 3) float64
-        In Bosphorus order (:data:`~tpscore.face.landmarks.LANDMARK_NAMES`), NaN rows
-        where the scan has no surface at the landmark (a hole, a cut).
-
-    Raises
-    ------
-    ValueError
-        Naming ``scan``: not points, non-finite cloud, wrong shape, too few points.
-    """
+def _fit(points: np.ndarray, grid: np.ndarray | None):
+    """The average face fitted to the scan, globally and then region by region: its
+    landmarks on the scan, the fit's rotation and the scan's tree."""
     from .average_face import load_average_face  # the average face needs the grid module
 
-    points, grid = _scan_points(scan)
     afm = load_average_face()
     model_all = afm.grid.points[afm.grid.mask]
     model_landmarks = afm.landmarks
@@ -169,7 +152,6 @@ def detect_landmarks(scan, *, image=None, uv=None) -> np.ndarray:
         s, rotation, t, _ = _icp(model, tree, points, s, rotation, t, scale=_GLOBAL_SCALE, iterations=12, keep=keep)
     fitted = s * model_landmarks @ rotation.T + t
     # 3. each region once more, rigidly, from the global fit
-    model_tree = KDTree(model_all)
     result = fitted.copy()
     votes = np.zeros(N_LANDMARKS)
     sums = np.zeros((N_LANDMARKS, 3))
@@ -186,9 +168,95 @@ def detect_landmarks(scan, *, image=None, uv=None) -> np.ndarray:
             votes[i] += 1
     has = votes > 0
     result[has] = sums[has] / votes[has, None]
-    del model_tree
+    return result, rotation, tree
+
+
+def detect_landmarks(scan, *, image=None, uv=None) -> np.ndarray:
+    """The 22 Bosphorus landmarks of a raw scan, found from its geometry and, when the
+    scan has one, its colour image.
+
+    Parameters
+    ----------
+    scan : path, BntScan, FaceGrid, (H, W, 3) grid or (n, 3) points
+        The scan in its own frame: millimetres, the face looking toward +z (within a
+        few tens of degrees), +y up. A grid's NaN points (or those outside its
+        ``valid``/``mask``) are holes. A path names a ``.bnt`` file; the image it
+        names, beside it, is used when it exists.
+    image : (h, w, 3) uint8 array, path or None
+        The scan's colour image. By default a FaceGrid's ``image``, or for a path the
+        ``.bnt``'s image beside it; a BntScan does not know its folder, so its image is
+        passed here. Without an image (or for a point cloud, which has no grid for the
+        colour cues) the landmarks come from the geometry alone.
+    uv : (H, W, 2) array-like, optional
+        Each grid point's normalised image coordinates (u to the right, v down). By
+        default a BntScan's or FaceGrid's own, or for a plain grid the pixel centres
+        ``((c + 0.5) / W, (r + 0.5) / H)``.
+
+    Returns
+    -------
+    (22, 3) float64
+        In Bosphorus order (:data:`~tpscore.face.landmarks.LANDMARK_NAMES`), NaN rows
+        where the scan has no surface at the landmark (a hole, a cut).
+
+    Raises
+    ------
+    ValueError
+        Naming ``scan``: not points, non-finite cloud, wrong shape, too few points, an
+        unreadable file; naming ``image`` or ``uv``: not an image, an image given with
+        a point cloud, u,v of another shape than the grid or outside [0, 1].
+    """
+    scan, image, uv = _colour_inputs(scan, image, uv)
+    points, grid = _scan_points(scan)
+    colour = _colour_of(grid, image, uv)
+    result, rotation, tree = _fit(points, grid)
     # 4. local cues in the fitted frame (R^T maps scan directions to the face's)
     result = _cues.refine(result, points, tree, rotation, grid)
+    placed = None
+    if colour is not None:
+        result, placed, lips = _colour.refine_with_colour(result, colour, rotation)
+        if lips:
+            _cues.refine_chin(result, points, rotation)
     # 5. onto the surface along the view axis; a landmark without surface under it is missing
-    return _cues.project_onto_surface(result, points, rotation, _MISSING_MM)
+    return _cues.project_onto_surface(result, points, rotation, _MISSING_MM, keep=placed)
 
+
+def _colour_inputs(scan, image, uv):
+    """The scan, its image (an array or None) and u,v (None: the scan's own or the
+    pixel centres) from what was passed: a path is read with its image beside it."""
+    from .io import read_bnt, read_image  # io reads files; the detector needs it only for paths
+
+    if isinstance(scan, (str, os.PathLike)):
+        path = Path(scan)
+        if path.suffix.lower() != ".bnt":
+            raise ValueError(f"scan: a path must name a .bnt scan, got {str(path)!r}")
+        scan = read_bnt(path)
+        if image is None and scan.image_name and (path.parent / scan.image_name).is_file():
+            image = path.parent / scan.image_name
+    if image is None:
+        image = getattr(scan, "image", None)
+    elif isinstance(image, (str, os.PathLike)):
+        image = read_image(image)
+    if image is not None:
+        image = as_colour_image(image, "image")
+    if uv is None:
+        uv = getattr(scan, "uv", None)
+    return scan, image, uv
+
+
+def _colour_of(grid: np.ndarray | None, image: np.ndarray | None, uv):
+    """The colour cues' view of the scan, or None without an image."""
+    if image is None:
+        return None
+    if grid is None:
+        raise ValueError("image: the colour cues need a grid scan (a .bnt, a FaceGrid or an (H, W, 3) "
+                         "array); a point cloud is detected from its geometry alone, without an image")
+    height, width = grid.shape[:2]
+    if uv is None:
+        rows, cols = np.mgrid[0:height, 0:width]
+        uv = np.stack([(cols + 0.5) / width, (rows + 0.5) / height], axis=-1)
+    uv = as_array(uv, "uv")
+    if uv.shape != (height, width, 2):
+        raise ValueError(f"uv: must have the grid's shape ({height}, {width}, 2), got {uv.shape}")
+    valid = np.isfinite(grid).all(axis=2)
+    check_image_fits(image, grid, uv, valid & np.isfinite(uv).all(axis=2), "image")
+    return _colour.colour_scan(grid, image, uv)

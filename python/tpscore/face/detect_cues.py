@@ -8,7 +8,7 @@ from scipy import ndimage
 from ..spatial import KDTree
 from .landmarks import landmark_index
 
-__all__ = ["coarse_nose_tip", "refine"]
+__all__ = ["coarse_nose_tip", "refine", "refine_chin", "project_onto_surface"]
 
 _TIP = landmark_index("Nose tip")
 _UPPER_INNER = landmark_index("Upper lip inner middle")
@@ -22,6 +22,8 @@ _PEAK_ABOVE_SUBNASALE_MM = 1.5
 _HOLLOW_RADIUS_MM = 8.0
 _BROWS = tuple(range(6))
 _BROW_BELOW_MM, _BROW_ABOVE_MM = 4.0, 16.0
+_CHIN_SLOPE = 1.5
+_CHIN = landmark_index("Chin middle")
 _CORNERS = (landmark_index("Left mouth corner"), landmark_index("Right mouth corner"))
 
 
@@ -153,16 +155,7 @@ def _refine_midline(result, points, rotation):
     upper, lower = peaks[0], peaks[1]
     result[_UPPER_OUTER] = points[pick[upper]]
     result[_LOWER_OUTER] = points[pick[lower]]
-    # the chin: where the midline turns under the face (its depth falls faster than
-    # 0.7 mm per mm) below the hollow under the lower lip, or the lowest point the scan has on it
-    sulcus = lower + int(np.argmin(smooth[lower: lower + 25]))
-    below = np.arange(sulcus + 6, len(z))
-    below = below[known[below]]
-    if len(below) > 3:
-        slope = -np.gradient(smooth)
-        steep = below[slope[below] > 0.7]
-        chin = steep[0] if len(steep) else below[-1]
-        result[landmark_index("Chin middle")] = points[pick[chin]]
+    _chin_below(result, points, smooth, known, pick, lower)
     between = np.arange(upper + 1, lower)
     if len(between) == 0:
         return
@@ -179,6 +172,36 @@ def _refine_midline(result, points, rotation):
         result[_LOWER_INNER] = points[pick[hollow]]
 
 
+def _chin_below(result, points, smooth, known, pick, lower: int) -> None:
+    """The chin: where the midline profile turns under the face (its depth falls faster
+    than :data:`_CHIN_SLOPE` mm per mm) below the hollow under the lower lip (profile bin
+    `lower`), or the lowest point the scan has on it."""
+    sulcus = lower + int(np.argmin(smooth[lower: lower + 25]))
+    below = np.arange(sulcus + 6, len(smooth))
+    below = below[known[below]]
+    if len(below) > 3:
+        slope = -np.gradient(smooth)
+        steep = below[slope[below] > _CHIN_SLOPE]
+        chin = steep[0] if len(steep) else below[-1]
+        result[_CHIN] = points[pick[chin]]
+
+
+def refine_chin(result, points, rotation) -> None:
+    """The chin found again below the lower lip's outer middle as it is now (the colour
+    cues find the lips more surely than the profile's bulges)."""
+    tip, lower = result[_TIP], result[_LOWER_OUTER]
+    if not (np.isfinite(tip).all() and np.isfinite(lower).all()):
+        return
+    ys, z, pick = _midline_profile(points, rotation, tip)
+    known = np.isfinite(z)
+    if known.sum() < 30:
+        return
+    filled = np.interp(np.arange(len(z)), np.flatnonzero(known), z[known])
+    smooth = ndimage.uniform_filter1d(filled, 3)
+    start = int(np.clip(-((lower - tip) @ rotation)[1], 0, len(ys) - 1))
+    _chin_below(result, points, smooth, known, pick, start)
+
+
 def _follow_mouth(result, fitted, rotation):
     """The mouth corners move up or down with the lips' contact line found on the
     midline (the average face's mouth sits where its own lips meet)."""
@@ -191,9 +214,11 @@ def _follow_mouth(result, fitted, rotation):
         result[corner] = result[corner] + shift * rotation[:, 1]
 
 
-def project_onto_surface(result, points, rotation, radius_mm: float):
+def project_onto_surface(result, points, rotation, radius_mm: float, keep=None):
     """Each landmark moved along the face's view axis onto the scan: the mean of the
-    scan points within `radius_mm` of it across the face; NaN where there are none."""
+    scan points within `radius_mm` of it across the face; NaN where there are none.
+    Landmarks marked in `keep` are scan points already: they stay where they are (or
+    NaN without scan points near them)."""
     local = points @ rotation
     tree = KDTree(np.c_[local[:, :2], np.zeros(len(local))])
     out = np.full_like(result, np.nan)
@@ -203,6 +228,9 @@ def project_onto_surface(result, points, rotation, radius_mm: float):
         here = landmark @ rotation
         near = np.asarray(tree.query_radius(np.array([[here[0], here[1], 0.0]]), radius_mm)[0], dtype=np.int64)
         if len(near) == 0:
+            continue
+        if keep is not None and keep[i]:
+            out[i] = landmark
             continue
         # the front-most layer under the landmark (a grid sees one surface per x, y)
         z = local[near, 2]

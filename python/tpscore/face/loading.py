@@ -90,13 +90,13 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
         raise ValueError(f"detect: must be True or False, got {detect!r}")
     auto = isinstance(landmarks_path, str) and landmarks_path == "auto"
     if auto:
-        landmarks = _detect(source, path)
+        landmarks = _detect(source, path, image)
     elif landmarks_path is None:
         found = landmark_file_beside(path)
         if found is not None:
             landmarks = read_landmarks(found)
         elif detect:
-            landmarks = _detect(source, path)
+            landmarks = _detect(source, path, image)
             warnings.warn(f"no landmark file beside {str(path)!r} (looked for .lm3, .csv, .json): "
                           "landmarks detected from the scan", LandmarksDetectedWarning, stacklevel=2)
         else:
@@ -118,9 +118,11 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
     return grid
 
 
-def _detect(source, path):
+def _detect(source, path, image=None):
+    """The scan's landmarks found by :func:`detect_landmarks`, with the colour image of a
+    ``.bnt`` (its colour cues: brows, lips, eye openings) when it has one."""
     try:
-        return detect_landmarks(source)
+        return detect_landmarks(source, image=image)
     except ValueError as exc:
         raise ValueError(f"{str(path)!r}: landmarks cannot be detected: {exc}") from None
 
