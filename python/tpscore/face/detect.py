@@ -1,6 +1,7 @@
 """Automatic landmarks: the 22 Bosphorus landmarks of a raw scan, in its own frame.
 
-The scan's geometry finds them; no annotated face model is used beyond tpscore's own
+The scan's geometry and, where it has one, its colour image find them; no annotated
+face model is used beyond tpscore's own
 average face (:func:`~tpscore.face.average_face.load_average_face`, built from the
 procedural faces):
 
@@ -16,10 +17,14 @@ procedural faces):
    the nose's slope ends; the mouth corners follow the lips' contact line; the inner
    eye corners move to the deepest point near them and the outer ones follow; the
    brows to the brow ridge;
-4. every landmark onto the surface along the face's view axis; one with no scan
+4. with a colour image, the colour cues: the brows' dark bands, the ends of the eye
+   openings, the lips' red region (corners, outer middles, the line between them), and
+   the chin again below the lower lip;
+5. every landmark onto the surface along the face's view axis; one with no scan
    surface under it (a hole, a cut) is NaN.
 
-:mod:`tpscore.face.detect_cues` holds the local cues.
+:mod:`tpscore.face.detect_cues` holds the local cues, :mod:`tpscore.face.detect_colour`
+the colour cues; docs/landmarks.md the method and its accuracy.
 """
 from __future__ import annotations
 
