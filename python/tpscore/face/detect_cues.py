@@ -124,6 +124,18 @@ def _midline_profile(points, rotation, tip, step=1.0):
     return ys, z, pick
 
 
+def _smoothed_profile(points, rotation, tip):
+    """The midline profile below the nose tip with its gaps filled and smoothed over
+    three bins: (ys, smooth depth, known bins, picked points), or None with fewer than
+    30 known bins."""
+    ys, z, pick = _midline_profile(points, rotation, tip)
+    known = np.isfinite(z)
+    if known.sum() < 30:
+        return None
+    filled = np.interp(np.arange(len(z)), np.flatnonzero(known), z[known])
+    return ys, ndimage.uniform_filter1d(filled, 3), known, pick
+
+
 def _refine_midline(result, points, rotation):
     """Upper lip, lower lip and chin as the successive bulges of the midline profile
     below the nose tip; the inner lips at the hollow (or gap) between the lips."""
@@ -132,12 +144,10 @@ def _refine_midline(result, points, rotation):
     tip = result[_TIP]
     if not np.isfinite(tip).all():
         return
-    ys, z, pick = _midline_profile(points, rotation, tip)
-    known = np.isfinite(z)
-    if known.sum() < 30:
+    profile = _smoothed_profile(points, rotation, tip)
+    if profile is None:
         return
-    filled = np.interp(np.arange(len(z)), np.flatnonzero(known), z[known])
-    smooth = ndimage.uniform_filter1d(filled, 3)
+    ys, smooth, known, pick = profile
     # the nose peaks (the alae's base) lie at the height where the nose's slope ends
     descent = -np.gradient(smooth)
     flat = np.flatnonzero((np.arange(len(smooth)) > 4) & (descent < 0.3))
@@ -192,12 +202,10 @@ def refine_chin(result, points, rotation) -> None:
     tip, lower = result[_TIP], result[_LOWER_OUTER]
     if not (np.isfinite(tip).all() and np.isfinite(lower).all()):
         return
-    ys, z, pick = _midline_profile(points, rotation, tip)
-    known = np.isfinite(z)
-    if known.sum() < 30:
+    profile = _smoothed_profile(points, rotation, tip)
+    if profile is None:
         return
-    filled = np.interp(np.arange(len(z)), np.flatnonzero(known), z[known])
-    smooth = ndimage.uniform_filter1d(filled, 3)
+    ys, smooth, known, pick = profile
     start = int(np.clip(-((lower - tip) @ rotation)[1], 0, len(ys) - 1))
     _chin_below(result, points, smooth, known, pick, start)
 
