@@ -13,14 +13,15 @@ procedural faces):
 3. local cues: the nose tip moves to the most protruding point near it; the upper and
    lower lips to the bulges of the midline profile below the nose, the inner lips to
    the hollow between them (or the edges of the opening when the mouth is open), the
-   chin to where the midline turns under the face; the nose peaks to the height where
-   the nose's slope ends; the mouth corners follow the lips' contact line; the inner
+   chin to where the midline turns under the face; the mouth corners follow the lips' contact line; the inner
    eye corners move to the deepest point near them and the outer ones follow; the
    brows to the brow ridge;
 4. with a colour image, the colour cues: the brows' dark bands, the ends of the eye
    openings, the lips' red region (corners, outer middles, the line between them), and
    the chin again below the lower lip;
-5. every landmark onto the surface along the face's view axis; one with no scan
+5. the nose peaks in proportion to the landmarks found by then: part of the way from
+   the nose tip to the upper lip, part of the inner eye corners' spacing apart;
+6. every landmark onto the surface along the face's view axis; one with no scan
    surface under it (a hole, a cut) is NaN.
 
 :mod:`tpscore.face.detect_cues` holds the local cues, :mod:`tpscore.face.detect_colour`
@@ -221,6 +222,7 @@ def detect_landmarks(scan, *, image=None, uv=None) -> np.ndarray:
         result, placed, lips = _colour.refine_with_colour(result, colour, rotation)
         if lips:
             _cues.refine_chin(result, points, rotation)
+    _cues.place_nose_peaks(result, rotation)
     # 5. onto the surface along the view axis; a landmark without surface under it is missing
     return _cues.project_onto_surface(result, points, rotation, _MISSING_MM, keep=placed)
 
