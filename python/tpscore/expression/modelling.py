@@ -212,6 +212,12 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
     the work it wants on another thread while the registration runs (it uses one core,
     where the texture tracking before it uses two)."""
     texture = None
+    if source_neutral.grid.landmarks_detected or source_expressive.grid.landmarks_detected:
+        # Two scans' detected landmarks differ by a few millimetres where a labelled pair
+        # differs by one or two: held to them, the registration carries the detector's
+        # error as motion (development subjects, AUs 1, 2, 4, 17 with detected
+        # landmarks: mean ratio 0.296 held, 0.248 not; benchmarks/LANDMARKS.md).
+        motion = replace(motion, landmark_weight=0.0)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-surface") as second_thread:
         # the expressive surface is built while the texture is tracked
         surface = second_thread.submit(source_expressive.surface)

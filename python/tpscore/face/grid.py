@@ -91,6 +91,11 @@ class FaceGrid:
         The map from the grid's frame back to the frame of the scan it was made from,
         when :func:`~tpscore.face.resampling.resample_scan` brought the scan into the canonical frame (see
         :mod:`tpscore.face.pose`); None when the two are the same.
+    landmarks_detected : bool
+        Whether the landmarks were found by :func:`~tpscore.detect_landmarks` rather
+        than read from a file (:func:`~tpscore.load_scan` sets it): the transfer then
+        does not hold its registration to them, since two scans' detections differ by
+        a few millimetres where a labelled pair differs by one or two.
     """
 
     points: np.ndarray
@@ -100,6 +105,7 @@ class FaceGrid:
     landmark_vertices: np.ndarray
     image: np.ndarray | None = None
     scan_frame: FrameTransform | None = None
+    landmarks_detected: bool = False
 
     def __post_init__(self):
         mask = np.array(self.mask, dtype=bool)
@@ -133,6 +139,9 @@ class FaceGrid:
         self.landmarks, self.landmark_vertices = landmarks, index
         if self.image is not None:
             self.image = _as_colour_image(self.image)
+        if not isinstance(self.landmarks_detected, (bool, np.bool_)):
+            raise ValueError(f"landmarks_detected must be True or False, got {self.landmarks_detected!r}")
+        self.landmarks_detected = bool(self.landmarks_detected)
         if self.scan_frame is not None and not isinstance(self.scan_frame, FrameTransform):
             raise ValueError(f"scan_frame must be a FrameTransform or None, got {type(self.scan_frame).__name__}")
 
@@ -213,7 +222,8 @@ class FaceGrid:
     def copy(self) -> "FaceGrid":
         """A deep copy."""
         return FaceGrid(self.points.copy(), self.mask.copy(), self.uv.copy(),
-                        self.landmarks.copy(), self.landmark_vertices.copy(), self.image, self.scan_frame)
+                        self.landmarks.copy(), self.landmark_vertices.copy(), self.image, self.scan_frame,
+                        self.landmarks_detected)
 
     def with_points(self, new_points) -> "FaceGrid":
         """The same grid (mask, u,v map, landmark vertices) with moved vertices.
@@ -242,7 +252,7 @@ class FaceGrid:
         present = self.landmark_vertices >= 0
         landmarks[present] = points.reshape(-1, 3)[self.landmark_vertices[present]]
         return FaceGrid(points, self.mask.copy(), self.uv.copy(), landmarks, self.landmark_vertices.copy(),
-                        self.image, self.scan_frame)
+                        self.image, self.scan_frame, self.landmarks_detected)
 
     def with_landmarks(self, landmarks) -> "FaceGrid":
         """The same grid with `landmarks` (22, 3; NaN rows missing) snapped to it.

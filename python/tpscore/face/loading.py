@@ -89,6 +89,7 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
     if not isinstance(detect, (bool, np.bool_)):
         raise ValueError(f"detect: must be True or False, got {detect!r}")
     auto = isinstance(landmarks_path, str) and landmarks_path == "auto"
+    detected = auto
     if auto:
         landmarks = _detect(source, path, image)
     elif landmarks_path is None:
@@ -96,7 +97,7 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
         if found is not None:
             landmarks = read_landmarks(found)
         elif detect:
-            landmarks = _detect(source, path, image)
+            landmarks, detected = _detect(source, path, image), True
             warnings.warn(f"no landmark file beside {str(path)!r} (looked for .lm3, .csv, .json): "
                           "landmarks detected from the scan", LandmarksDetectedWarning, stacklevel=2)
         else:
@@ -115,6 +116,7 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
         raise ValueError(f"{str(path)!r}: {exc}") from None
     if image is not None:
         grid.image = _as_colour_image(image)
+    grid.landmarks_detected = detected
     return grid
 
 
