@@ -128,3 +128,24 @@ def test_the_colour_image_brings_the_brows_lips_and_eyes_closer(tmp_path):
         # measured: geometry 8.5 / 4.5 / 9.4 mm on average, with colour 2.4 / 2.5 / 2.6
         assert np.nanmean(colour) < 3.1 and np.nanmean(colour) < 0.8 * np.nanmean(geometry)
         assert np.isfinite(colour).sum() >= 20
+
+
+def test_the_commands_scan_reader_detects_with_the_image_beside_the_scan(tmp_path):
+    """`tpscore adapt` / `simulate` read a scan without a landmark file through
+    read_scan_landmarks: its detection sees the colour image beside the .bnt, as
+    load_scan's does, not the geometry alone."""
+    import warnings
+
+    from tpscore.face.io import read_bnt
+    from tpscore.face.scan_files import read_scan_landmarks
+    from tpscore.showcase.demo_faces import make_demo_scan
+
+    scan = make_demo_scan(1, None, seed=5)
+    path = scan.write(tmp_path, "person1")
+    (tmp_path / "person1.lm3").unlink(missing_ok=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", tpscore.LandmarksDetectedWarning)
+        found = read_scan_landmarks(path)
+    np.testing.assert_allclose(found, detect_landmarks(path), equal_nan=True)
+    assert np.nanmean(_errors(found, scan.landmarks)) < np.nanmean(_errors(detect_landmarks(read_bnt(path)),
+                                                                            scan.landmarks)) - 1.0

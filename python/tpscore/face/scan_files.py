@@ -37,7 +37,8 @@ def read_scan_landmarks(scan, given=None) -> np.ndarray:
     path = given if given is not None else io.landmark_file_beside(scan)
     if path is not None:
         return io.read_landmarks(path)
-    source = io.read_bnt(scan) if Path(scan).suffix.lower() == ".bnt" else io.read_mesh(scan)[0]
+    # a .bnt is detected from its path, so that the colour image beside it is read too
+    source = scan if Path(scan).suffix.lower() == ".bnt" else io.read_mesh(scan)[0]
     landmarks = detect_landmarks(source)
     found = int(np.isfinite(landmarks).all(axis=1).sum())
     warnings.warn(f"no landmark file beside {str(scan)!r} (looked for .lm3, .csv, .json): {found} of "
