@@ -141,7 +141,8 @@ def _components(mask: np.ndarray, min_cells: float) -> list[np.ndarray]:
 
 def _brow(result, cs: ColourScan, frame, marks, indices, side) -> bool:
     """One brow: the longest dark band across the face near the fitted brow; its ends
-    are the inner and outer brow, the middle of its upper edge the middle brow."""
+    are the inner and outer brow, and the middle brow lies between the top of its arch
+    and its middle."""
     outer, middle, inner = indices
     here = marks[list(indices)]
     if not np.isfinite(here).all():
@@ -169,7 +170,11 @@ def _brow(result, cs: ColourScan, frame, marks, indices, side) -> bool:
     points = cs.xyz[best]
     result[inner] = points[_end(side * cu, -1)].mean(axis=0)
     result[outer] = points[_end(side * cu, 1)].mean(axis=0)
-    # the middle brow: the top of the band's arch, where its centre line is highest
+    # the middle brow: halfway between the top of the band's arch (where its centre
+    # line is highest) and the band's middle. The arch alone follows a raised inner
+    # brow toward the nose, the middle alone misses the arch of a relaxed one; on the
+    # development scans the brows' mean error over the 11 expressions is 4.5 mm with
+    # the arch, 4.6 with the middle, 4.2 halfway (sadness 6.0, 3.4, 4.6).
     bins = np.round((cu - cu.min()) / 2.0).astype(int)
     counts = np.bincount(bins)
     line = np.bincount(bins, weights=cv) / np.maximum(counts, 1)
@@ -178,7 +183,10 @@ def _brow(result, cs: ColourScan, frame, marks, indices, side) -> bool:
     line[: span // 5] = -np.inf
     line[span - span // 5:] = -np.inf
     high = np.flatnonzero(line >= line.max() - _ARCH_MM)
-    result[middle] = points[np.isin(bins, high)].mean(axis=0)
+    mid = span // 2
+    near = np.arange(max(0, mid - 1), min(span, mid + 2))
+    arch, centre = points[np.isin(bins, high)].mean(axis=0), points[np.isin(bins, near)]
+    result[middle] = 0.5 * (arch + centre.mean(axis=0)) if len(centre) else arch
     return True
 
 
