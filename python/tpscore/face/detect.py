@@ -13,9 +13,9 @@ procedural faces):
 3. local cues: the nose tip moves to the most protruding point near it; the upper and
    lower lips to the bulges of the midline profile below the nose, the inner lips to
    the hollow between them (or the edges of the opening when the mouth is open), the
-   chin to where the midline turns under the face; the mouth corners follow the lips' contact line; the inner
-   eye corners move to the deepest point near them and the outer ones follow; the
-   brows to the brow ridge;
+   chin to where the midline turns under the face; the mouth corners follow the lips'
+   contact line; the inner eye corners move to the deepest point near them and the
+   outer ones follow; the brows to the brow ridge;
 4. with a colour image, the colour cues: the brows' dark bands, the ends of the eye
    openings, the lips' red region (corners, outer middles, the line between them), and
    the chin again below the lower lip;
@@ -222,8 +222,9 @@ def detect_landmarks(scan, *, image=None, uv=None) -> np.ndarray:
         result, placed, lips = _colour.refine_with_colour(result, colour, rotation)
         if lips:
             _cues.refine_chin(result, points, rotation)
+    # 5. the nose peaks in proportion to what was found
     _cues.place_nose_peaks(result, rotation)
-    # 5. onto the surface along the view axis; a landmark without surface under it is missing
+    # 6. onto the surface along the view axis; a landmark without surface under it is missing
     return _cues.project_onto_surface(result, points, rotation, _MISSING_MM, keep=placed)
 
 

@@ -51,7 +51,9 @@ def load_scan(path, landmarks_path=None, shape=DEFAULT_GRID_SHAPE, *,
         (:func:`~tpscore.face.detect.detect_landmarks`). By default the file beside
         `path` with the same stem and one of these suffixes (``.lm3`` first); if there
         is none, the landmarks are detected and a
-        :class:`~tpscore.face.detect.LandmarksDetectedWarning` says so.
+        :class:`~tpscore.face.detect.LandmarksDetectedWarning` says so. Detected
+        landmarks set ``FaceGrid.landmarks_detected``, which a transfer follows more
+        loosely than labelled ones.
     shape, max_gap_mm
         As in :func:`~tpscore.face.resampling.resample_scan`.
     image_path : str or PathLike, optional
