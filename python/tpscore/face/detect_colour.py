@@ -185,8 +185,9 @@ def _brow(result, cs: ColourScan, frame, marks, indices, side) -> bool:
     high = np.flatnonzero(line >= line.max() - _ARCH_MM)
     mid = span // 2
     near = np.arange(max(0, mid - 1), min(span, mid + 2))
-    arch, centre = points[np.isin(bins, high)].mean(axis=0), points[np.isin(bins, near)]
-    result[middle] = 0.5 * (arch + centre.mean(axis=0)) if len(centre) else arch
+    arch = points[np.isin(bins, high)].mean(axis=0)
+    around_middle = points[np.isin(bins, near)]
+    result[middle] = 0.5 * (arch + around_middle.mean(axis=0)) if len(around_middle) else arch
     return True
 
 
