@@ -481,3 +481,43 @@ def test_registration_terms_match_the_numpy_reference_to_the_bit(m):
         got = _core.texture_pull_terms(sample, moved, targets, normals, prior, floor, 3.0)
         for a, b in zip(got, expected):
             np.testing.assert_array_equal(a, b)
+
+
+def test_detected_landmark_pairs_keep_only_the_ends_the_texture_gives():
+    """With texture matches and detected landmarks, a pair's expressive end must come
+    from the texture: the detected expressive landmarks do not enter the term, and a
+    landmark whose vertex has no match has no pair."""
+    from tpscore.expression.landmark_pairs import landmark_term
+    from tpscore.expression.texture import TextureMatches
+
+    scan = datasets.make_face(datasets.random_identity(2), None, seed=3)
+    neutral = resample_scan(scan.points, scan.landmarks)
+    shift = np.array([0.0, 1.5, 0.5])
+    expressive = FaceGrid.from_points(np.where(neutral.mask[..., None], neutral.points + shift, np.nan))
+    mesh = expressive.mesh()
+    surface = MeshSurface(mesh.vertices, mesh.faces)
+    lattice = BSplineLattice(neutral.points[neutral.mask][:, :2].min(axis=0),
+                             neutral.points[neutral.mask][:, :2].max(axis=0), 8.0)
+    # the texture matched every vertex but those of the first five landmarks
+    confidence = neutral.mask.astype(float)
+    rows, cols = np.divmod(neutral.landmark_vertices[:5], neutral.shape[1])
+    confidence[rows, cols] = 0.0
+    texture = TextureMatches(np.where(neutral.mask[..., None], neutral.points + shift, np.nan), confidence,
+                             float(confidence[neutral.mask].mean()), 0.0)
+    off = neutral.landmarks + shift + 4.0  # a detector's expressive landmarks, 4 mm off
+
+    def term(expressive_landmarks, **kw):
+        matrix, rhs = landmark_term(lattice, neutral.points, neutral.mask, neutral.landmarks, expressive_landmarks,
+                                    surface, 3.0, texture, **kw)
+        return matrix.toarray(), rhs
+
+    matrix, rhs = term(off, texture_ends_only=True)
+    again, rhs_again = term(neutral.landmarks + shift, texture_ends_only=True)
+    assert np.array_equal(matrix, again) and np.array_equal(rhs, rhs_again)
+    # the same as labelled pairs of the matched landmarks alone, whose ends are the matches
+    kept = neutral.landmarks.copy()
+    kept[:5] = np.nan
+    labelled, labelled_rhs = term(kept + shift)
+    assert np.allclose(matrix, labelled, atol=1e-12) and np.allclose(rhs, labelled_rhs, atol=1e-12)
+    # labelled landmarks keep their pairs, the unmatched ones ending at the labels
+    assert not np.allclose(term(off)[1], rhs)

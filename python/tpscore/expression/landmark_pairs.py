@@ -167,13 +167,17 @@ def refined_pair_trust(fit_rms, shape, max_rms_mm: float) -> np.ndarray:
     return trust
 
 
-def texture_landmarks(points, mask, lm_from, lm_to, texture) -> np.ndarray:
+def texture_landmarks(points, mask, lm_from, lm_to, texture, *, matched_only: bool = False) -> np.ndarray:
     """The expressive landmarks, each replaced by the texture match of its neutral
     landmark's grid vertex where there is one: the skin's pattern shows where a labelled
     point went more precisely than a second label (about a millimetre off in each scan)
-    or a patch fit of the surface, which cannot follow skin that slides."""
+    or a patch fit of the surface, which cannot follow skin that slides. With
+    ``matched_only``, a landmark without a match is NaN instead of its expressive label
+    (for labels a detector made, a few millimetres off)."""
     out = lm_to.copy()
     present = np.flatnonzero(np.isfinite(lm_from).all(axis=1) & np.isfinite(lm_to).all(axis=1))
+    if matched_only:
+        out[:] = np.nan
     if len(present) == 0:
         return out
     valid = np.flatnonzero(mask.reshape(-1))
@@ -188,7 +192,8 @@ def texture_landmarks(points, mask, lm_from, lm_to, texture) -> np.ndarray:
 
 
 def landmark_term(lattice: BSplineLattice, points, mask, neutral_landmarks, expressive_landmarks,
-                  expressive_surface: MeshSurface, landmark_weight: float, texture=None):
+                  expressive_surface: MeshSurface, landmark_weight: float, texture=None, *,
+                  texture_ends_only: bool = False):
     """The landmark pairs as soft constraints of the registration's normal equations.
 
     Each pair pulls the field at its neutral landmark toward a target with a 3 x 3
@@ -197,6 +202,11 @@ def landmark_term(lattice: BSplineLattice, points, mask, neutral_landmarks, expr
     landmark's vertex where there is one (:func:`texture_landmarks`); without them the
     pair is refined by a patch fit and trusted per direction
     (:func:`refine_landmark_motion`, :func:`refined_pair_trust`).
+
+    With texture matches and ``texture_ends_only`` (landmarks a detector found), only
+    the pairs whose expressive end is a texture match are kept: a detected expressive
+    landmark is a few millimetres off, more than the motion of most AUs, while a
+    texture match at a detected neutral landmark is still where that skin went.
 
     Returns
     -------
@@ -207,10 +217,11 @@ def landmark_term(lattice: BSplineLattice, points, mask, neutral_landmarks, expr
     """
     lm_from = np.asarray(neutral_landmarks, dtype=np.float64)
     lm_to = np.asarray(expressive_landmarks, dtype=np.float64)
+    if texture is not None:
+        lm_to = texture_landmarks(points, mask, lm_from, lm_to, texture, matched_only=texture_ends_only)
     both = np.isfinite(lm_from).all(axis=1) & np.isfinite(lm_to).all(axis=1)
     eye = np.eye(3)[None]
     if texture is not None:
-        lm_to = texture_landmarks(points, mask, lm_from, lm_to, texture)
         weight = np.repeat(landmark_weight * eye, int(both.sum()), axis=0)
         pull = landmark_weight * (lm_to - lm_from)[both]
     else:

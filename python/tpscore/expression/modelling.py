@@ -212,12 +212,7 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
     the work it wants on another thread while the registration runs (it uses one core,
     where the texture tracking before it uses two)."""
     texture = None
-    if source_neutral.grid.landmarks_detected or source_expressive.grid.landmarks_detected:
-        # Two scans' detected landmarks differ by a few millimetres where a labelled pair
-        # differs by one or two: held to them, the registration carries the detector's
-        # error as motion (development subjects, AUs 1, 2, 4, 17 with detected
-        # landmarks: mean ratio 0.296 held, 0.248 not; benchmarks/LANDMARKS.md).
-        motion = replace(motion, landmark_weight=0.0)
+    detected = source_neutral.grid.landmarks_detected or source_expressive.grid.landmarks_detected
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-surface") as second_thread:
         # the expressive surface is built while the texture is tracked
         surface = second_thread.submit(source_expressive.surface)
@@ -227,6 +222,14 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
             warnings.warn("neither source scan has a colour image: the motion comes from the geometry "
                           "alone, which follows the skin less closely (give each scan its image, a "
                           "textured mesh or vertex colours)", TextureWarning, stacklevel=2)
+        if detected and texture is None:
+            # Two scans' detected landmarks differ by a few millimetres where a labelled
+            # pair differs by one or two: held to them, the registration carries the
+            # detector's error as motion (development subjects, AUs 1, 2, 4, 17 with
+            # detected landmarks: mean ratio 0.296 held, 0.248 not; with texture the
+            # pairs whose end the texture gives are kept instead, 0.219 against 0.234
+            # without them over nine AUs; benchmarks/LANDMARKS.md).
+            motion = replace(motion, landmark_weight=0.0)
         if while_registering is not None:
             while_registering()
         grid = source_neutral.grid
@@ -236,7 +239,8 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
             field = register_surfaces(grid.points, grid.mask,
                                       source_neutral.landmarks if landmarks is None else landmarks,
                                       surface.result(), source_expressive.landmarks, motion, weight=weight,
-                                      texture=texture, prepared=prepared, pairs=pairs)
+                                      texture=texture, prepared=prepared, pairs=pairs,
+                                      landmarks_detected=detected)
             return Extended(field, source_neutral)
 
         moved = moved_openings(openings(source_neutral), source_expressive.grid)

@@ -265,7 +265,8 @@ def prepare_registration(neutral_points, neutral_mask, options: MotionOptions = 
 
 def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressive_surface: MeshSurface,
                       expressive_landmarks, options: MotionOptions = MotionOptions(), weight=None,
-                      texture=None, prepared: RegistrationGrid | None = None, pairs=None) -> DenseMotion:
+                      texture=None, prepared: RegistrationGrid | None = None, pairs=None,
+                      landmarks_detected: bool = False) -> DenseMotion:
     """Register a neutral face grid onto an expressive surface of the same person.
 
     Parameters
@@ -291,6 +292,10 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     pairs : (from_points, to_points, weights), optional
         More soft pairs, like the landmarks' (k, 3), (k, 3) and (k,): e.g. where the
         rims of an opening went (:mod:`tpscore.expression.cut_motion`).
+    landmarks_detected : bool, default False
+        Whether the landmarks were found by a detector rather than labelled: with
+        texture matches, a landmark pair is then kept only where the texture says
+        where its neutral landmark went (:func:`~tpscore.expression.landmark_pairs.landmark_term`).
 
     Returns
     -------
@@ -305,7 +310,8 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     basis, n_nodes = system.basis, lattice.n_nodes
     # the terms that do not change over the iterations, in the system's pattern
     landmarks, landmark_rhs = landmark_term(lattice, points, mask, neutral_landmarks, expressive_landmarks,
-                                            expressive_surface, options.landmark_weight, texture)
+                                            expressive_surface, options.landmark_weight, texture,
+                                            texture_ends_only=landmarks_detected)
     if pairs is not None:
         pair_matrix, pair_rhs = soft_pairs(lattice, *pairs)
         landmarks, landmark_rhs = landmarks + pair_matrix, landmark_rhs + pair_rhs
