@@ -511,8 +511,8 @@ def test_detected_landmark_pairs_keep_only_the_ends_the_texture_gives():
                                     surface, 3.0, texture, **kw)
         return matrix.toarray(), rhs
 
-    matrix, rhs = term(off, texture_ends_only=True)
-    again, rhs_again = term(neutral.landmarks + shift, texture_ends_only=True)
+    matrix, rhs = term(off, landmarks_detected=True)
+    again, rhs_again = term(neutral.landmarks + shift, landmarks_detected=True)
     assert np.array_equal(matrix, again) and np.array_equal(rhs, rhs_again)
     # the same as labelled pairs of the matched landmarks alone, whose ends are the matches
     kept = neutral.landmarks.copy()

@@ -174,10 +174,8 @@ def texture_landmarks(points, mask, lm_from, lm_to, texture, *, matched_only: bo
     or a patch fit of the surface, which cannot follow skin that slides. With
     ``matched_only``, a landmark without a match is NaN instead of its expressive label
     (for labels a detector made, a few millimetres off)."""
-    out = lm_to.copy()
+    out = np.full_like(lm_to, np.nan) if matched_only else lm_to.copy()
     present = np.flatnonzero(np.isfinite(lm_from).all(axis=1) & np.isfinite(lm_to).all(axis=1))
-    if matched_only:
-        out[:] = np.nan
     if len(present) == 0:
         return out
     valid = np.flatnonzero(mask.reshape(-1))
@@ -193,7 +191,7 @@ def texture_landmarks(points, mask, lm_from, lm_to, texture, *, matched_only: bo
 
 def landmark_term(lattice: BSplineLattice, points, mask, neutral_landmarks, expressive_landmarks,
                   expressive_surface: MeshSurface, landmark_weight: float, texture=None, *,
-                  texture_ends_only: bool = False):
+                  landmarks_detected: bool = False):
     """The landmark pairs as soft constraints of the registration's normal equations.
 
     Each pair pulls the field at its neutral landmark toward a target with a 3 x 3
@@ -203,10 +201,15 @@ def landmark_term(lattice: BSplineLattice, points, mask, neutral_landmarks, expr
     pair is refined by a patch fit and trusted per direction
     (:func:`refine_landmark_motion`, :func:`refined_pair_trust`).
 
-    With texture matches and ``texture_ends_only`` (landmarks a detector found), only
-    the pairs whose expressive end is a texture match are kept: a detected expressive
-    landmark is a few millimetres off, more than the motion of most AUs, while a
-    texture match at a detected neutral landmark is still where that skin went.
+    ``landmarks_detected``: the landmarks were found by a detector, not labelled. Two
+    scans' detections differ by a few millimetres where a labelled pair differs by one
+    or two, more than the motion of most AUs, and held to them the registration carries
+    the detector's error as motion. With texture matches, only the pairs whose
+    expressive end is a match are kept (a match at a detected neutral landmark is still
+    where that skin went); without them, the labelled part of each pair goes and only
+    the patch fit's trusted directions stay. Development subjects, every landmark
+    detected: AUs 1, 2, 4, 17 without texture 0.296 held to the pairs, 0.248 not; nine
+    AUs with texture 0.234 without pairs, 0.219 with the texture's (benchmarks/LANDMARKS.md).
 
     Returns
     -------
@@ -217,8 +220,10 @@ def landmark_term(lattice: BSplineLattice, points, mask, neutral_landmarks, expr
     """
     lm_from = np.asarray(neutral_landmarks, dtype=np.float64)
     lm_to = np.asarray(expressive_landmarks, dtype=np.float64)
+    if landmarks_detected and texture is None:
+        landmark_weight = 0.0
     if texture is not None:
-        lm_to = texture_landmarks(points, mask, lm_from, lm_to, texture, matched_only=texture_ends_only)
+        lm_to = texture_landmarks(points, mask, lm_from, lm_to, texture, matched_only=landmarks_detected)
     both = np.isfinite(lm_from).all(axis=1) & np.isfinite(lm_to).all(axis=1)
     eye = np.eye(3)[None]
     if texture is not None:

@@ -222,14 +222,6 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
             warnings.warn("neither source scan has a colour image: the motion comes from the geometry "
                           "alone, which follows the skin less closely (give each scan its image, a "
                           "textured mesh or vertex colours)", TextureWarning, stacklevel=2)
-        if detected and texture is None:
-            # Two scans' detected landmarks differ by a few millimetres where a labelled
-            # pair differs by one or two: held to them, the registration carries the
-            # detector's error as motion (development subjects, AUs 1, 2, 4, 17 with
-            # detected landmarks: mean ratio 0.296 held, 0.248 not; with texture the
-            # pairs whose end the texture gives are kept instead, 0.219 against 0.234
-            # without them over nine AUs; benchmarks/LANDMARKS.md).
-            motion = replace(motion, landmark_weight=0.0)
         if while_registering is not None:
             while_registering()
         grid = source_neutral.grid

@@ -293,9 +293,10 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         More soft pairs, like the landmarks' (k, 3), (k, 3) and (k,): e.g. where the
         rims of an opening went (:mod:`tpscore.expression.cut_motion`).
     landmarks_detected : bool, default False
-        Whether the landmarks were found by a detector rather than labelled: with
-        texture matches, a landmark pair is then kept only where the texture says
-        where its neutral landmark went (:func:`~tpscore.expression.landmark_pairs.landmark_term`).
+        Whether the landmarks were found by a detector rather than labelled: the
+        landmark pairs then hold the registration only where the texture (or, without
+        it, a patch fit of the surface) says where a neutral landmark went
+        (:func:`~tpscore.expression.landmark_pairs.landmark_term`).
 
     Returns
     -------
@@ -311,7 +312,7 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     # the terms that do not change over the iterations, in the system's pattern
     landmarks, landmark_rhs = landmark_term(lattice, points, mask, neutral_landmarks, expressive_landmarks,
                                             expressive_surface, options.landmark_weight, texture,
-                                            texture_ends_only=landmarks_detected)
+                                            landmarks_detected=landmarks_detected)
     if pairs is not None:
         pair_matrix, pair_rhs = soft_pairs(lattice, *pairs)
         landmarks, landmark_rhs = landmarks + pair_matrix, landmark_rhs + pair_rhs

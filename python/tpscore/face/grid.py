@@ -94,8 +94,9 @@ class FaceGrid:
     landmarks_detected : bool
         Whether the landmarks were found by :func:`~tpscore.detect_landmarks` rather
         than read from a file (:func:`~tpscore.load_scan` sets it): the transfer then
-        does not hold its registration to them, since two scans' detections differ by
-        a few millimetres where a labelled pair differs by one or two.
+        holds its registration only to the landmark pairs the texture confirms, since
+        two scans' detections differ by a few millimetres where a labelled pair differs
+        by one or two.
     """
 
     points: np.ndarray
