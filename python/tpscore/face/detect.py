@@ -68,6 +68,11 @@ _MAX_ICP_POINTS = 6000
 #: The average face within this distance (mm, across the face) of its nose tip is fitted.
 _GLOBAL_RADIUS_MM = 70.0
 _GLOBAL_SCALE = False
+#: The nose tip lies between these multiples of the inner eye corners' spacing from the
+#: point between them (1.03-1.52 on the development scans' true landmarks).
+_TIP_DROP_MIN, _TIP_DROP_MAX = 0.8, 1.65
+_NOSE_TIP = landmark_index("Nose tip")
+_INNER_EYES = (landmark_index("Inner left eye corner"), landmark_index("Inner right eye corner"))
 
 
 def _scan_points(scan) -> tuple[np.ndarray, np.ndarray | None]:
@@ -138,18 +143,18 @@ def _even_sample(points: np.ndarray, count: int) -> np.ndarray:
     return points[::step]
 
 
-def _fit(points: np.ndarray, grid: np.ndarray | None):
-    """The average face fitted to the scan, globally and then region by region: its
-    landmarks on the scan, the fit's rotation and the scan's tree."""
+def _fit(points: np.ndarray, grid: np.ndarray | None, tree: KDTree, tip: np.ndarray | None = None):
+    """The average face fitted to the scan, globally from a nose tip (by default the
+    most protruding point) and then region by region: its landmarks on the scan and
+    the fit's rotation."""
     from .average_face import load_average_face  # the average face needs the grid module
 
     afm = load_average_face()
     model_all = afm.grid.points[afm.grid.mask]
     model_landmarks = afm.landmarks
-    tree = KDTree(points)
-
     # 1. a coarse nose tip: the most protruding point of the smoothed surface
-    tip = _cues.coarse_nose_tip(points, grid)
+    if tip is None:
+        tip = _cues.coarse_nose_tip(points, grid)
     # 2. the global fit: the average face's nose tip on it, then a similarity ICP
     central = np.linalg.norm(model_all[:, :2] - model_landmarks[landmark_index("Nose tip"), :2], axis=1) < _GLOBAL_RADIUS_MM
     model = _even_sample(model_all[central], _MAX_ICP_POINTS)
@@ -174,7 +179,7 @@ def _fit(points: np.ndarray, grid: np.ndarray | None):
             votes[i] += 1
     has = votes > 0
     result[has] = sums[has] / votes[has, None]
-    return result, rotation, tree
+    return result, rotation
 
 
 def detect_landmarks(scan, *, image=None, uv=None) -> np.ndarray:
@@ -214,7 +219,27 @@ def detect_landmarks(scan, *, image=None, uv=None) -> np.ndarray:
     scan, image, uv = _colour_inputs(scan, image, uv)
     points, grid = _scan_points(scan)
     colour = _colour_of(grid, image, uv)
-    result, rotation, tree = _fit(points, grid)
+    tree = KDTree(points)
+    result, rotation, placed = _detect(points, grid, tree, colour)
+    eyes = result[list(_INNER_EYES)]
+    spacing = np.linalg.norm(eyes[0] - eyes[1])
+    between = eyes.mean(axis=0)
+    if np.isfinite(spacing) and np.linalg.norm(result[_NOSE_TIP] - between) > _TIP_DROP_MAX * spacing:
+        # the nose tip is further below the eyes than on any face: the fit started on
+        # the lips or the chin, which stood out further than the nose. Once more from
+        # the most protruding point at a nose's distance below the eyes
+        tip = _cues.nose_tip_below_eyes(points, grid, between, rotation[:, 1],
+                                        _TIP_DROP_MAX * spacing, _TIP_DROP_MIN * spacing)
+        if tip is not None:
+            result, rotation, placed = _detect(points, grid, tree, colour, tip)
+    # 6. onto the surface along the view axis; a landmark without surface under it is missing
+    return _cues.project_onto_surface(result, points, rotation, _MISSING_MM, keep=placed)
+
+
+def _detect(points, grid, tree, colour, tip=None):
+    """Steps 2-5 from a nose tip (by default the most protruding point): the landmarks,
+    the fit's rotation and which landmarks are scan points already."""
+    result, rotation = _fit(points, grid, tree, tip)
     # 4. local cues in the fitted frame (R^T maps scan directions to the face's)
     result = _cues.refine(result, points, tree, rotation, grid)
     placed = None
@@ -224,8 +249,7 @@ def detect_landmarks(scan, *, image=None, uv=None) -> np.ndarray:
             _cues.refine_chin(result, points, rotation)
     # 5. the nose peaks in proportion to what was found
     _cues.place_nose_peaks(result, rotation)
-    # 6. onto the surface along the view axis; a landmark without surface under it is missing
-    return _cues.project_onto_surface(result, points, rotation, _MISSING_MM, keep=placed)
+    return result, rotation, placed
 
 
 def _colour_inputs(scan, image, uv):

@@ -8,7 +8,7 @@ from scipy import ndimage
 from ..spatial import KDTree
 from .landmarks import landmark_index
 
-__all__ = ["coarse_nose_tip", "refine", "refine_chin", "project_onto_surface"]
+__all__ = ["coarse_nose_tip", "nose_tip_below_eyes", "refine", "refine_chin", "project_onto_surface"]
 
 _TIP = landmark_index("Nose tip")
 _UPPER_INNER = landmark_index("Upper lip inner middle")
@@ -27,6 +27,10 @@ _PEAKS = (landmark_index("Left nose peak"), landmark_index("Right nose peak"))
 _PEAK_DROP_FRACTION = 0.42
 _PEAK_WIDTH_FRACTION = 0.70
 _HOLLOW_RADIUS_MM = 8.0
+# The nose tip's prominence is measured against the surface smoothed over this radius
+# (mm). On the development scans (subjects 0-9, 14 expressions) the nose tip's mean
+# error is 4.4 mm with the most protruding point, 3.0 with the most prominent one.
+_NOSE_SIZE_MM = 20.0
 _BROWS = tuple(range(6))
 _BROW_BELOW_MM, _BROW_ABOVE_MM = 4.0, 16.0
 _CHIN_SLOPE = 1.5
@@ -48,20 +52,39 @@ def _smoothed_depth(points: np.ndarray, grid: np.ndarray | None, radius_mm: floa
         # a point near a hole's edge or the border averages too few neighbours
         smooth[count < 0.6] = -np.inf
         return smooth[valid]
-    tree = KDTree(points)
-    k = min(40, len(points))
-    _, index = tree.query(points, k=k)
-    return points[np.asarray(index), 2].mean(axis=1)
+    # a cloud: the mean over 40 neighbours among every n-th point, n growing with the
+    # radius's area, so that wide radii cost no more than narrow ones
+    step = max(1, int(round((radius_mm / 4.0) ** 2)))
+    every = points[::step]
+    _, index = KDTree(every).query(points, k=min(40, len(every)))
+    return every[np.asarray(index), 2].mean(axis=1)
 
 
 def coarse_nose_tip(points: np.ndarray, grid: np.ndarray | None) -> np.ndarray:
-    """The most protruding point of the smoothed surface in the middle of the face."""
+    """The most prominent point in the middle of the face: the surface smoothed over a
+    few millimetres stands out furthest from the surface smoothed over the nose's size.
+    (The most protruding point alone is the lips or the chin on a face whose mouth
+    stands out further than its nose, or that is tipped back.)"""
     lo, hi = np.percentile(points[:, :2], [2, 98], axis=0)
     centre, half = (lo + hi) / 2, (hi - lo) / 2
     middle = (np.abs(points[:, :2] - centre) < 0.6 * half).all(axis=1)
+    prominence = _smoothed_depth(points, grid, 3.0) - _smoothed_depth(points, grid, _NOSE_SIZE_MM)
+    prominence = np.where(middle & np.isfinite(prominence), prominence, -np.inf)
+    return points[int(np.argmax(prominence))].copy()
+
+
+def nose_tip_below_eyes(points: np.ndarray, grid: np.ndarray | None, eyes: np.ndarray,
+                        up: np.ndarray, lowest: float, highest: float) -> np.ndarray | None:
+    """The most protruding point of the smoothed surface between `highest` and `lowest`
+    mm below the point between the inner eye corners (along `up`, the face's up axis in
+    the scan), within 20 mm of the midline; None when there is no surface there."""
     depth = _smoothed_depth(points, grid, 4.0)
-    depth = np.where(middle, depth, -np.inf)
-    return points[int(np.argmax(depth))].copy()
+    offset = points - eyes
+    drop = -(offset @ up)
+    across = np.linalg.norm(offset + drop[:, None] * up, axis=1)
+    depth = np.where((drop > highest) & (drop < lowest) & (across < 20.0), depth, -np.inf)
+    best = int(np.argmax(depth))
+    return points[best].copy() if np.isfinite(depth[best]) else None
 
 
 def _face_frame(points: np.ndarray, rotation: np.ndarray, origin: np.ndarray) -> np.ndarray:
