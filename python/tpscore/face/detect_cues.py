@@ -136,11 +136,18 @@ def _refine_inner_lips(result, points, tree, rotation):
             result[target] = points[pick[np.argmin(np.abs(local[pick, 0]))]]
 
 
-def _midline_profile(points, rotation, tip, step=1.0):
+def _midline_profile(points, rotation, tip, step=1.0, through=None):
     """The face's depth along its midline below the nose tip: y (mm, down from the tip,
-    negative), z (NaN where the strip has no point) and the scan point of each bin."""
+    negative), z (NaN where the strip has no point) and the scan point of each bin. The
+    midline runs straight down the fitted face, or from the tip through `through` (a
+    point below it) when one is given."""
     local = _face_frame(points, rotation, tip)
-    strip = np.flatnonzero((np.abs(local[:, 0]) < 3.0) & (local[:, 1] < 0) & (local[:, 1] > -120))
+    centre = np.zeros(len(local))
+    if through is not None:
+        x, y = _face_frame(through[None], rotation, tip)[0, :2]
+        if y < -5.0:
+            centre = local[:, 1] * (x / y)
+    strip = np.flatnonzero((np.abs(local[:, 0] - centre) < 3.0) & (local[:, 1] < 0) & (local[:, 1] > -120))
     edges = np.arange(0.0, -120.0 - step, -step)
     ys = (edges[:-1] + edges[1:]) / 2
     z = np.full(len(ys), np.nan)
@@ -148,17 +155,17 @@ def _midline_profile(points, rotation, tip, step=1.0):
     bins = np.clip(((-local[strip, 1]) / step).astype(int), 0, len(ys) - 1)
     for b in np.unique(bins):
         members = strip[bins == b]
-        best = members[np.argmin(np.abs(local[members, 0]))]
+        best = members[np.argmin(np.abs(local[members, 0] - centre[members]))]
         z[b] = np.median(local[members, 2])
         pick[b] = best
     return ys, z, pick
 
 
-def _smoothed_profile(points, rotation, tip):
+def _smoothed_profile(points, rotation, tip, through=None):
     """The midline profile below the nose tip with its gaps filled and smoothed over
     three bins: (ys, smooth depth, known bins, picked points), or None with fewer than
     30 known bins."""
-    ys, z, pick = _midline_profile(points, rotation, tip)
+    ys, z, pick = _midline_profile(points, rotation, tip, through=through)
     known = np.isfinite(z)
     if known.sum() < 30:
         return None
@@ -216,6 +223,12 @@ def _chin_below(result, points, smooth, known, pick, lower: int) -> None:
         steep = below[slope[below] > _CHIN_SLOPE]
         chin = steep[0] if len(steep) else below[-1]
         result[_CHIN] = points[pick[chin]]
+    else:
+        # no hollow under the lip before the scan ends (a receding chin, a face tipped
+        # back): the chin is the lowest point the scan has on the midline
+        rest = np.flatnonzero(known[lower + 6:]) + lower + 6
+        if len(rest):
+            result[_CHIN] = points[pick[rest[-1]]]
 
 
 def place_nose_peaks(result, rotation) -> None:
@@ -243,7 +256,9 @@ def refine_chin(result, points, rotation) -> None:
     tip, lower = result[_TIP], result[_LOWER_OUTER]
     if not (np.isfinite(tip).all() and np.isfinite(lower).all()):
         return
-    profile = _smoothed_profile(points, rotation, tip)
+    # the midline through the lower lip the colour found: a fit rolled by a few degrees
+    # puts its own midline beside the chin
+    profile = _smoothed_profile(points, rotation, tip, through=lower)
     if profile is None:
         return
     ys, smooth, known, pick = profile
