@@ -19,8 +19,9 @@ procedural faces):
 4. with a colour image, the colour cues: the brows' dark bands, the ends of the eye
    openings, the lips' red region (corners, outer middles, the line between them), and
    the chin again below the lower lip;
-5. the nose peaks in proportion to the landmarks found by then: part of the way from
-   the nose tip to the upper lip, part of the inner eye corners' spacing apart;
+5. the nose peaks and saddles in proportion to the landmarks found by then: the peaks
+   part of the way from the nose tip to the upper lip, the saddles part of the way from
+   the inner eye corners to the nose tip, each part of the corners' spacing apart;
 6. every landmark onto the surface along the face's view axis; one with no scan
    surface under it (a hole, a cut) is NaN.
 
@@ -247,8 +248,9 @@ def _detect(points, grid, tree, colour, tip=None):
         result, placed, lips = _colour.refine_with_colour(result, colour, rotation)
         if lips:
             _cues.refine_chin(result, points, rotation)
-    # 5. the nose peaks in proportion to what was found
+    # 5. the nose peaks and saddles in proportion to what was found
     _cues.place_nose_peaks(result, rotation)
+    _cues.place_nose_saddles(result, rotation)
     return result, rotation, placed
 
 

@@ -8,7 +8,8 @@ from scipy import ndimage
 from ..spatial import KDTree
 from .landmarks import landmark_index
 
-__all__ = ["coarse_nose_tip", "nose_tip_below_eyes", "refine", "refine_chin", "project_onto_surface"]
+__all__ = ["coarse_nose_tip", "nose_tip_below_eyes", "place_nose_peaks", "place_nose_saddles", "refine",
+           "refine_chin", "project_onto_surface"]
 
 _TIP = landmark_index("Nose tip")
 _UPPER_INNER = landmark_index("Upper lip inner middle")
@@ -26,6 +27,14 @@ _PEAKS = (landmark_index("Left nose peak"), landmark_index("Right nose peak"))
 # detected upper lip and tip sit in a frame tilted from the true one.
 _PEAK_DROP_FRACTION = 0.42
 _PEAK_WIDTH_FRACTION = 0.70
+# The nose saddles lie this fraction of the way from the inner eye corners down to the
+# nose tip, and this fraction of the corners' half spacing either side of the middle.
+# Chosen on the development subjects' detections (the true landmarks' own proportions
+# there are 0.15 and 0.47, 3 and 4 % spread; the detected inner corners sit wider and
+# the tip lower): the saddles' mean error 2.7-2.8 mm against 3.9-5.0 from the fit.
+_SADDLE_DROP_FRACTION = 0.07
+_SADDLE_WIDTH_FRACTION = 0.42
+_SADDLES = (landmark_index("Nose saddle left"), landmark_index("Nose saddle right"))
 _HOLLOW_RADIUS_MM = 8.0
 # The nose tip's prominence is measured against the surface smoothed over this radius
 # (mm). On the development scans (subjects 0-9, 14 expressions) the nose tip's mean
@@ -250,6 +259,22 @@ def place_nose_peaks(result, rotation) -> None:
         result[peak] = tip + rotation @ np.array([across, drop, depth])
 
 
+def place_nose_saddles(result, rotation) -> None:
+    """The nose saddles from the nose tip and the inner eye corners found by then
+    (:data:`_SADDLE_DROP_FRACTION`, :data:`_SADDLE_WIDTH_FRACTION`): the nose's sides
+    there have no edge of their own, and the fitted average face's saddles were 4.4-4.6
+    mm off on average. Their depth comes from the projection onto the surface."""
+    tip, inner = result[_TIP], result[list(_INNER_EYES)]
+    if not (np.isfinite(tip).all() and np.isfinite(inner).all()):
+        return
+    eyes = (inner - tip) @ rotation
+    middle = 0.5 * (eyes[0] + eyes[1])
+    half_width = 0.5 * abs(eyes[0, 0] - eyes[1, 0])
+    for saddle, eye in zip(_SADDLES, eyes):  # each saddle on its own eye's side
+        across = middle[0] + np.sign(eye[0] - middle[0]) * _SADDLE_WIDTH_FRACTION * half_width
+        result[saddle] = tip + rotation @ np.array([across, *(middle[1:] * (1.0 - _SADDLE_DROP_FRACTION))])
+
+
 def refine_chin(result, points, rotation) -> None:
     """The chin found again below the lower lip's outer middle as it is now (the colour
     cues find the lips more surely than the profile's bulges)."""
@@ -296,11 +321,19 @@ def project_onto_surface(result, points, rotation, radius_mm: float, keep=None):
         if keep is not None and keep[i]:
             out[i] = landmark
             continue
-        # the front-most layer under the landmark (a grid sees one surface per x, y)
+        # the front-most layer under the landmark (a grid sees one surface per x, y),
+        # its depth at the landmark from a plane through it: the layer's mean depth
+        # lies in front of a landmark on a slope (the nose's sides, the brows' ends;
+        # development scans: all landmarks' mean error 3.25 mm with the mean, 3.12 with
+        # the plane)
         z = local[near, 2]
         front = near[z > z.max() - 3.0]
         moved = here.copy()
         moved[2] = local[front, 2].mean()
+        if len(front) >= 6:
+            design = np.c_[np.ones(len(front)), local[front, :2] - here[:2]]
+            plane, *_ = np.linalg.lstsq(design, local[front, 2], rcond=None)
+            moved[2] = plane[0]
         out[i] = rotation @ moved
     return out
 
