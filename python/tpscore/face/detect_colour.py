@@ -61,6 +61,9 @@ _END_MM = 1.5
 #: error 2.4 / 2.4 mm at the tip, 1.3 / 1.2 here; the middle brows' 2.8 / 3.5 mm between
 #: the top of the band's arch and its middle, 1.4 / 1.7 here (5.9 / 5.8 at 0.47, 3.4 at 0.6).
 _INNER_BROW_INSET_MM, _MIDDLE_BROW_FRACTION = 2.0, 0.55
+#: A piece of a brow's band joins it across a gap of at most this (mm, across the face)
+#: and a step in height of at most the second (mm).
+_JOIN_GAP_MM, _JOIN_RISE_MM = 12.0, 4.0
 
 
 @dataclass
@@ -176,6 +179,7 @@ def _brow(result, cs: ColourScan, frame, marks, indices, side) -> bool:
             best, height = component, centre
     if best is None:
         return False
+    best = _join_pieces(best, _components(weak, cs.cells(2.0) ** 2), u, v)
     across = side * u[best]
     points = cs.xyz[best]
     result[outer] = points[_end(across, 1)].mean(axis=0)
@@ -186,6 +190,31 @@ def _brow(result, cs: ColourScan, frame, marks, indices, side) -> bool:
         if column.any():
             result[index] = points[column].mean(axis=0)
     return True
+
+
+def _join_pieces(band: np.ndarray, pieces: list[np.ndarray], u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The band with the pieces that continue it joined: a light brow breaks into
+    pieces along its line. A piece joins when it starts within :data:`_JOIN_GAP_MM`
+    across the face of an end of the band, its own end within :data:`_JOIN_RISE_MM`
+    of the band's end in height (development scans, 14 expressions: the brows' mean
+    error 2.47 mm without joining, 2.30 with gaps up to 8 mm, 2.25 up to 12)."""
+    joined = True
+    while joined:
+        joined = False
+        bu, bv = u[band], v[band]
+        for piece in pieces:
+            if (piece & band).any():
+                continue
+            pu, pv = u[piece], v[piece]
+            # the piece beyond the band's larger-u end, or beyond its smaller-u end
+            for gap, band_end, piece_end in (
+                    (pu.min() - bu.max(), bv[bu >= bu.max() - 3.0], pv[pu <= pu.min() + 3.0]),
+                    (bu.min() - pu.max(), bv[bu <= bu.min() + 3.0], pv[pu >= pu.max() - 3.0])):
+                if -1.0 < gap < _JOIN_GAP_MM and abs(piece_end.mean() - band_end.mean()) < _JOIN_RISE_MM:
+                    band = band | piece
+                    joined = True
+                    break
+    return band
 
 
 def _eye(result, cs: ColourScan, frame, marks, indices, side) -> bool:
