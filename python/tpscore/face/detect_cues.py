@@ -77,8 +77,9 @@ def coarse_nose_tip(points: np.ndarray, grid: np.ndarray | None) -> np.ndarray:
     lo, hi = np.percentile(points[:, :2], [2, 98], axis=0)
     centre, half = (lo + hi) / 2, (hi - lo) / 2
     middle = (np.abs(points[:, :2] - centre) < 0.6 * half).all(axis=1)
-    prominence = _smoothed_depth(points, grid, 3.0) - _smoothed_depth(points, grid, _NOSE_SIZE_MM)
-    prominence = np.where(middle & np.isfinite(prominence), prominence, -np.inf)
+    fine, coarse = _smoothed_depth(points, grid, 3.0), _smoothed_depth(points, grid, _NOSE_SIZE_MM)
+    usable = middle & np.isfinite(fine) & np.isfinite(coarse)  # -inf at a hole's edge or the border
+    prominence = np.where(usable, fine - np.where(usable, coarse, 0.0), -np.inf)
     return points[int(np.argmax(prominence))].copy()
 
 
