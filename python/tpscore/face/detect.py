@@ -5,11 +5,14 @@ face model is used beyond tpscore's own
 average face (:func:`~tpscore.face.average_face.load_average_face`, built from the
 procedural faces):
 
-1. a coarse nose tip, the most protruding point of the smoothed depth near the middle
-   of the face (scans look toward +z);
+1. a coarse nose tip, the most prominent point of the smoothed depth near the middle
+   of the face (scans look toward +z), where it stands out furthest from the depth
+   smoothed over a nose's size;
 2. the average face fitted to the scan by a trimmed similarity ICP from that nose tip,
    then once more per region (brows, eyes, nose, mouth, chin) by a rigid ICP of the
-   average face's patch around the region's landmarks, which carries its landmarks;
+   average face's patch around the region's landmarks, which carries its landmarks
+   (all once more from the most protruding point a nose's distance below the eyes when
+   the nose tip lands further below them than on any face);
 3. local cues: the nose tip moves to the most protruding point near it; the upper and
    lower lips to the bulges of the midline profile below the nose, the inner lips to
    the hollow between them (or the edges of the opening when the mouth is open), the
@@ -146,14 +149,14 @@ def _even_sample(points: np.ndarray, count: int) -> np.ndarray:
 
 def _fit(points: np.ndarray, grid: np.ndarray | None, tree: KDTree, tip: np.ndarray | None = None):
     """The average face fitted to the scan, globally from a nose tip (by default the
-    most protruding point) and then region by region: its landmarks on the scan and
+    most prominent point) and then region by region: its landmarks on the scan and
     the fit's rotation."""
     from .average_face import load_average_face  # the average face needs the grid module
 
     afm = load_average_face()
     model_all = afm.grid.points[afm.grid.mask]
     model_landmarks = afm.landmarks
-    # 1. a coarse nose tip: the most protruding point of the smoothed surface
+    # 1. a coarse nose tip: the most prominent point of the smoothed surface
     if tip is None:
         tip = _cues.coarse_nose_tip(points, grid)
     # 2. the global fit: the average face's nose tip on it, then a similarity ICP
@@ -238,7 +241,7 @@ def detect_landmarks(scan, *, image=None, uv=None) -> np.ndarray:
 
 
 def _detect(points, grid, tree, colour, tip=None):
-    """Steps 2-5 from a nose tip (by default the most protruding point): the landmarks,
+    """Steps 2-5 from a nose tip (by default the most prominent point): the landmarks,
     the fit's rotation and which landmarks are scan points already."""
     result, rotation = _fit(points, grid, tree, tip)
     # 4. local cues in the fitted frame (R^T maps scan directions to the face's)
