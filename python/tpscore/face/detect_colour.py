@@ -328,16 +328,7 @@ def _lips(result, cs: ColourScan, frame, marks) -> bool:
                 result[_UPPER_INNER] = cs.xyz[upper].mean(axis=0)
                 result[_LOWER_INNER] = cs.xyz[lower].mean(axis=0)
                 return True
-    # no gap, the lips closed: they meet in the fold between the red's top and bottom,
-    # the most recessed points of the column there (the midline profile's hollow, which
-    # the geometric cues take, is between its first two bulges, and those are not always
-    # the lips; development scans: the inner lips' mean error 4.8 / 4.1 mm there, 3.6 /
-    # 2.9 here, and 3.8 / 3.2 at the column's darkest points)
-    span = rv.max() - rv.min()
-    fold = column & cs.valid & (v > rv.min() + 0.2 * span) & (v < rv.max() - 0.2 * span)
-    if fold.sum() >= 3:
-        depth = frame[..., 2][fold]
-        result[_UPPER_INNER] = result[_LOWER_INNER] = cs.xyz[fold][depth <= np.quantile(depth, 0.1)].mean(axis=0)
+    # no gap: the inner lips keep the geometric cues' contact line
     return True
 
 
