@@ -422,8 +422,12 @@ def test_ctrl_c_leaves_complete_outputs_and_the_rerun_resumes(scans, client, gt_
     # a session of its own: Ctrl-C at a terminal signals the whole foreground group,
     # the workers included, and so does killpg here
     # the interpreter's own environment: the installed tpscore (or the caller's PYTHONPATH)
+    # and SIGINT at its default: a test run started in the background of a
+    # non-interactive shell ignores SIGINT, its children inherit that, and Python
+    # installs no KeyboardInterrupt handler when it starts with SIGINT ignored
     process = subprocess.Popen(command, start_new_session=True, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
+                               stderr=subprocess.PIPE, text=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 120
     while not list((out / "records").glob("*.json")) and time.monotonic() < deadline and process.poll() is None:
         time.sleep(0.1)
