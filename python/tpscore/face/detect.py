@@ -160,9 +160,9 @@ def _fit(points: np.ndarray, grid: np.ndarray | None, tree: KDTree, tip: np.ndar
     if tip is None:
         tip = _cues.coarse_nose_tip(points, grid)
     # 2. the global fit: the average face's nose tip on it, then a similarity ICP
-    central = np.linalg.norm(model_all[:, :2] - model_landmarks[landmark_index("Nose tip"), :2], axis=1) < _GLOBAL_RADIUS_MM
+    central = np.linalg.norm(model_all[:, :2] - model_landmarks[_NOSE_TIP, :2], axis=1) < _GLOBAL_RADIUS_MM
     model = _even_sample(model_all[central], _MAX_ICP_POINTS)
-    s, rotation, t = 1.0, np.eye(3), tip - model_landmarks[landmark_index("Nose tip")]
+    s, rotation, t = 1.0, np.eye(3), tip - model_landmarks[_NOSE_TIP]
     for keep in (0.6, 0.8, 0.9):
         s, rotation, t, _ = _icp(model, tree, points, s, rotation, t, scale=_GLOBAL_SCALE, iterations=12, keep=keep)
     fitted = s * model_landmarks @ rotation.T + t

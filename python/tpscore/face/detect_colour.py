@@ -164,8 +164,11 @@ def _brow(result, cs: ColourScan, frame, marks, indices, side) -> bool:
     top = np.percentile(darkness[inside], 98)
     strong = ndimage.binary_opening((darkness > max(_BROW_STRONG, 0.5 * top)) & inside, _disk(cs.cells(1.0)))
     weak = ndimage.binary_opening((darkness > max(_BROW_WEAK, 0.35 * top)) & inside, _disk(cs.cells(0.7)))
+    # the weak mask's parts, labelled once: the larger are candidate bands, any may
+    # continue the chosen one
+    pieces = _components(weak, cs.cells(2.0) ** 2)
     best, height = None, -np.inf
-    for component in _components(weak, cs.cells(4.0) ** 2):
+    for component in (p for p in pieces if p.sum() >= cs.cells(4.0) ** 2):
         if not (component & strong).sum() >= cs.cells(3.0) ** 2:
             continue
         extent = np.ptp(u[component])
@@ -179,7 +182,7 @@ def _brow(result, cs: ColourScan, frame, marks, indices, side) -> bool:
             best, height = component, centre
     if best is None:
         return False
-    best = _join_pieces(best, _components(weak, cs.cells(2.0) ** 2), u, v)
+    best = _join_pieces(best, pieces, u, v)
     across = side * u[best]
     points = cs.xyz[best]
     result[outer] = points[_end(across, 1)].mean(axis=0)

@@ -330,11 +330,12 @@ def project_onto_surface(result, points, rotation, radius_mm: float, keep=None):
         z = local[near, 2]
         front = near[z > z.max() - 3.0]
         moved = here.copy()
-        moved[2] = local[front, 2].mean()
         if len(front) >= 6:
             design = np.c_[np.ones(len(front)), local[front, :2] - here[:2]]
             plane, *_ = np.linalg.lstsq(design, local[front, 2], rcond=None)
             moved[2] = plane[0]
+        else:  # too few points for a plane
+            moved[2] = local[front, 2].mean()
         out[i] = rotation @ moved
     return out
 
