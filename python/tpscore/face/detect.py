@@ -7,7 +7,8 @@ procedural faces):
 
 1. a coarse nose tip, the most prominent point of the smoothed depth near the middle
    of the face (scans look toward +z), where it stands out furthest from the depth
-   smoothed over a nose's size;
+   smoothed over a nose's size (or a point nearly as prominent above it on the
+   midline: lips pushed forward stand out further than the nose);
 2. the average face fitted to the scan by a trimmed similarity ICP from that nose tip,
    then once more per region (brows, eyes, nose, mouth, chin) by a rigid ICP of the
    average face's patch around the region's landmarks, which carries its landmarks
