@@ -278,9 +278,10 @@ def _eye(result, cs: ColourScan, frame, marks, indices, side) -> bool:
         result[inner] = points[_end(ru, -1)].mean(axis=0)
         return True
     depth = frame[..., 2][near]
-    hollow = frame[near][depth <= np.quantile(depth, 0.05)].mean(axis=0)
+    deepest = depth <= np.quantile(depth, 0.05)
+    hollow = frame[near][deepest].mean(axis=0)
     result[inner] = _surface_at(cs, frame, hollow[0] - side * _INNER_EYE_CORNER_INSET_MM, hollow[1],
-                                fallback=cs.xyz[near][depth <= np.quantile(depth, 0.05)].mean(axis=0))
+                                fallback=cs.xyz[near][deepest].mean(axis=0))
     return True
 
 

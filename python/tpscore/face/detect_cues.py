@@ -93,6 +93,8 @@ def coarse_nose_tip(points: np.ndarray, grid: np.ndarray | None) -> np.ndarray:
     usable = middle & np.isfinite(fine) & np.isfinite(coarse)  # -inf at a hole's edge or the border
     prominence = np.where(usable, fine - np.where(usable, coarse, 0.0), -np.inf)
     best = int(np.argmax(prominence))
+    if not prominence[best] > 0.0:  # nothing stands out: no second look above
+        return points[best].copy()
     offset = points - points[best]
     low, high = _NOSE_ABOVE_MM
     above = ((offset[:, 1] > low) & (offset[:, 1] < high) & (np.abs(offset[:, 0]) < _NOSE_ABOVE_ACROSS_MM)
