@@ -269,16 +269,14 @@ def place_nose_peaks(result, rotation) -> None:
     is a gentle slope into the cheek with no edge of its own to find, and the fitted
     average face's alae are too low and too wide (7-8 mm median error). Their depth
     comes from the projection onto the surface that follows."""
-    tip, lip, inner = result[_TIP], result[_UPPER_OUTER], result[list(_INNER_EYES)]
-    if not (np.isfinite(tip).all() and np.isfinite(lip).all() and np.isfinite(inner).all()):
+    frame, lip = _inner_eyes_from_tip(result, rotation), result[_UPPER_OUTER]
+    if frame is None or not np.isfinite(lip).all():
         return
+    tip, eyes, middle, half_spacing = frame
     drop = _PEAK_DROP_FRACTION * ((lip - tip) @ rotation)[1]
-    eyes = (inner - tip) @ rotation
-    middle = 0.5 * (eyes[0, 0] + eyes[1, 0])
-    half_width = 0.5 * _PEAK_WIDTH_FRACTION * abs(eyes[0, 0] - eyes[1, 0])
     for peak, eye in zip(_PEAKS, eyes):  # each peak on its own eye's side
         depth = ((result[peak] - tip) @ rotation)[2] if np.isfinite(result[peak]).all() else 0.0
-        across = middle + np.sign(eye[0] - middle) * half_width
+        across = middle[0] + np.sign(eye[0] - middle[0]) * _PEAK_WIDTH_FRACTION * half_spacing
         result[peak] = tip + rotation @ np.array([across, drop, depth])
 
 
@@ -287,15 +285,24 @@ def place_nose_saddles(result, rotation) -> None:
     (:data:`_SADDLE_DROP_FRACTION`, :data:`_SADDLE_WIDTH_FRACTION`): the nose's sides
     there have no edge of their own, and the fitted average face's saddles were 4.4-5.0
     mm off on average. Their depth comes from the projection onto the surface."""
+    frame = _inner_eyes_from_tip(result, rotation)
+    if frame is None:
+        return
+    tip, eyes, middle, half_spacing = frame
+    for saddle, eye in zip(_SADDLES, eyes):  # each saddle on its own eye's side
+        across = middle[0] + np.sign(eye[0] - middle[0]) * _SADDLE_WIDTH_FRACTION * half_spacing
+        result[saddle] = tip + rotation @ np.array([across, *(middle[1:] * (1.0 - _SADDLE_DROP_FRACTION))])
+
+
+def _inner_eyes_from_tip(result, rotation):
+    """The nose tip, the inner eye corners in the face's axes about it, their middle and
+    half their spacing across the face, which the nose peaks and saddles are placed
+    from; None when the tip or a corner is missing."""
     tip, inner = result[_TIP], result[list(_INNER_EYES)]
     if not (np.isfinite(tip).all() and np.isfinite(inner).all()):
-        return
+        return None
     eyes = (inner - tip) @ rotation
-    middle = 0.5 * (eyes[0] + eyes[1])
-    half_width = 0.5 * abs(eyes[0, 0] - eyes[1, 0])
-    for saddle, eye in zip(_SADDLES, eyes):  # each saddle on its own eye's side
-        across = middle[0] + np.sign(eye[0] - middle[0]) * _SADDLE_WIDTH_FRACTION * half_width
-        result[saddle] = tip + rotation @ np.array([across, *(middle[1:] * (1.0 - _SADDLE_DROP_FRACTION))])
+    return tip, eyes, 0.5 * (eyes[0] + eyes[1]), 0.5 * abs(eyes[0, 0] - eyes[1, 0])
 
 
 def refine_chin(result, points, rotation) -> None:
