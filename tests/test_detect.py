@@ -5,7 +5,7 @@ import pytest
 
 import tpscore
 from tpscore import detect_landmarks
-from tpscore.face.io import BntScan
+from tpscore.face.io import BntScan, write_png
 from tpscore.face.landmarks import landmark_index
 from tpscore.showcase.datasets import make_face
 
@@ -181,31 +181,41 @@ def test_the_commands_scan_reader_detects_with_the_image_beside_the_scan(tmp_pat
                                                                             scan.landmarks)) - 1.0
 
 
-def test_the_brow_is_the_highest_dark_band_above_the_eye(tmp_path):
-    """A darker, longer band below each brow (the shadow under a brow ridge, a lid's
-    crease) does not take the brow's place."""
-    from tpscore.face.io import read_bnt, read_image, write_png
+#: The demo scan's grid spacing over its texture scale: the millimetres of a pixel.
+PIXEL_MM = 0.7 / 2
+
+
+def _demo_scan_to_paint(tmp_path):
+    """A demo scan written as a .bnt with its .png, the image to paint on, and the
+    image row and column of the grid point nearest a point."""
+    from tpscore.face.io import read_bnt, read_image
     from tpscore.showcase.demo_faces import make_demo_scan
 
     scan = make_demo_scan(0, None, seed=5)
     path = scan.write(tmp_path, "person0")
     grid = read_bnt(path)
-    image = read_image(tmp_path / "person0.png").copy()
+    image = read_image(path.with_suffix(".png")).copy()
     rows, cols = np.nonzero(np.isfinite(grid.points).all(axis=2))
-    pixel_mm = 0.7 / 2  # the demo scan's grid spacing over its texture scale
 
-    def pixel(point):  # the image row and column of the grid point nearest a landmark
+    def pixel(point):
         k = np.argmin(np.sum((grid.points[rows, cols, :2] - point[:2]) ** 2, axis=1))
         u, v = grid.uv[rows[k], cols[k]]
         return v * image.shape[0], u * image.shape[1]
 
+    return scan, path, image, pixel
+
+
+def test_the_brow_is_the_highest_dark_band_above_the_eye(tmp_path):
+    """A darker, longer band below each brow (the shadow under a brow ridge, a lid's
+    crease) does not take the brow's place."""
+    scan, path, image, pixel = _demo_scan_to_paint(tmp_path)
     for brow in (scan.landmarks[0:3], scan.landmarks[3:6]):
         at = np.array([pixel(p) for p in brow])
-        top = int(at[:, 0].max() + 8.0 / pixel_mm)  # 8 mm below the brow, 3 mm high
+        top = int(at[:, 0].max() + 8.0 / PIXEL_MM)  # 8 mm below the brow, 3 mm high
         pad = 0.3 * np.ptp(at[:, 1])                # and longer than it
-        band = (slice(top, top + int(3.0 / pixel_mm)), slice(int(at[:, 1].min() - pad), int(at[:, 1].max() + pad)))
+        band = (slice(top, top + int(3.0 / PIXEL_MM)), slice(int(at[:, 1].min() - pad), int(at[:, 1].max() + pad)))
         image[band] = (image[band] * 0.5).astype(np.uint8)
-    write_png(tmp_path / "person0.png", image)
+    write_png(path.with_suffix(".png"), image)
     errors = _errors(detect_landmarks(path)[:6], scan.landmarks[:6])
     # measured: 1.4 mm on average (the longest band instead: 14.8 mm, on the painted one)
     assert errors.mean() < 3.5
@@ -215,29 +225,15 @@ def test_a_brow_broken_into_pieces_is_found_whole(tmp_path):
     """A light brow shows in pieces: a 15 mm stretch of each brow painted over with the
     forehead's skin (the left one between its middle and inner ends, the right one
     between its middle and its falling tail) still gives the whole brow."""
-    from tpscore.face.io import read_bnt, read_image, write_png
-    from tpscore.showcase.demo_faces import make_demo_scan
-
-    scan = make_demo_scan(0, None, seed=5)
-    path = scan.write(tmp_path, "person0")
-    grid = read_bnt(path)
-    image = read_image(tmp_path / "person0.png").copy()
-    rows, cols = np.nonzero(np.isfinite(grid.points).all(axis=2))
-    pixel_mm = 0.7 / 2  # the demo scan's grid spacing over its texture scale
-
-    def pixel(point):  # the image row and column of the grid point nearest a landmark
-        k = np.argmin(np.sum((grid.points[rows, cols, :2] - point[:2]) ** 2, axis=1))
-        u, v = grid.uv[rows[k], cols[k]]
-        return v * image.shape[0], u * image.shape[1]
-
+    scan, path, image, pixel = _demo_scan_to_paint(tmp_path)
     for brow in (scan.landmarks[0:3], scan.landmarks[3:6]):
         middle, end = pixel(brow[1]), pixel(brow[2])
-        centre, half = 0.5 * (middle[1] + end[1]), 7.5 / pixel_mm
-        top = int(min(middle[0], end[0]) - 3.5 / pixel_mm)
-        bottom = int(max(middle[0], end[0]) + 3.5 / pixel_mm)
+        centre, half = 0.5 * (middle[1] + end[1]), 7.5 / PIXEL_MM
+        top = int(min(middle[0], end[0]) - 3.5 / PIXEL_MM)
+        bottom = int(max(middle[0], end[0]) + 3.5 / PIXEL_MM)
         columns = slice(int(centre - half), int(centre + half))
-        image[top:bottom, columns] = image[top - int(2.0 / pixel_mm), columns][None]  # the skin 2 mm above
-    write_png(tmp_path / "person0.png", image)
+        image[top:bottom, columns] = image[top - int(2.0 / PIXEL_MM), columns][None]  # the skin 2 mm above
+    write_png(path.with_suffix(".png"), image)
     errors = _errors(detect_landmarks(path)[:6], scan.landmarks[:6])
     # measured: 1.3 mm on average (12.2 mm when each piece was judged alone and joined
     # across at most 12 mm and a 4 mm step)
