@@ -14,7 +14,7 @@ motion is modelled and how it is carried onto the target.
 """
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -60,9 +60,9 @@ class DenseTransfer:
         return align_expressive(neutral, neutral_grid, expressive_grid, still,
                                 allow_other_person=self.options.allow_other_person)
 
-    def model(self, neutral: NormalisedFace, expressive: NormalisedFace, activations: Sequence[Activation],
-              while_registering: Callable[[], object] | None = None) -> ExpressionModel:
-        dense = dense_motion(neutral, expressive, self.options.motion, self.options.texture, while_registering)
+    def model(self, neutral: NormalisedFace, expressive: NormalisedFace,
+              activations: Sequence[Activation]) -> ExpressionModel:
+        dense = dense_motion(neutral, expressive, self.options.motion, self.options.texture)
         if needs_realignment(activations):
             # the alignment knew no part to be still, only the parts that move least
             dense = realigned(dense, neutral)
@@ -113,10 +113,8 @@ class PublishedTransfer:
         # every scan is normalised on its own landmarks
         return normalise_face(expressive_grid, self.reference.landmarks, self.normalisation)
 
-    def model(self, neutral: NormalisedFace, expressive: NormalisedFace, activations: Sequence[Activation],
-              while_registering: Callable[[], object] | None = None) -> ExpressionModel:
-        if while_registering is not None:
-            while_registering()
+    def model(self, neutral: NormalisedFace, expressive: NormalisedFace,
+              activations: Sequence[Activation]) -> ExpressionModel:
         moved = model_control_points(neutral, expressive, self._action_units(activations), self.reference,
                                      lambda au: place_control_points(au, self.reference),
                                      self.options.merge_landmarks_mm)
@@ -146,12 +144,12 @@ def transfer_method(options: TransferOptions, reference: NormalisedFace, library
 
 def model_expression(source_neutral: NormalisedFace, source_expressive: NormalisedFace,
                      activations: Sequence[Activation], reference: NormalisedFace,
-                     options: TransferOptions = TransferOptions(), library: ActionUnitLibrary | None = None,
-                     while_registering: Callable[[], object] | None = None) -> ExpressionModel:
+                     options: TransferOptions = TransferOptions(),
+                     library: ActionUnitLibrary | None = None) -> ExpressionModel:
     """The source's motion (both faces in the reference frame, the expressive one aligned
     by the method's :meth:`align`), by the method the options name."""
     method = transfer_method(options, reference, library or default_library())
-    return method.model(source_neutral, source_expressive, activations, while_registering)
+    return method.model(source_neutral, source_expressive, activations)
 
 
 def animate(model: ExpressionModel, target: NormalisedFace, options: TransferOptions = TransferOptions()) -> Animation:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -201,16 +201,12 @@ def openings(face: NormalisedFace):
 
 
 def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFace, motion: MotionOptions,
-                 texture_options: TextureOptions, while_registering: Callable[[], object] | None = None):
+                 texture_options: TextureOptions):
     """Register the neutral source onto its expressive scan (both in the reference
     frame), with their texture when either has a colour image (warning and falling back
     to the geometry when the other has none or the images cannot be used): a
     :class:`DenseMotion`, or a :class:`CutMotion` where the expressive scan shows an
-    opening open by another amount.
-
-    ``while_registering`` is called as the registration starts: a caller starts there
-    the work it wants on another thread while the registration runs (it uses one core,
-    where the texture tracking before it uses two)."""
+    opening open by another amount."""
     texture = None
     detected = source_neutral.grid.landmarks_detected or source_expressive.grid.landmarks_detected
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-surface") as second_thread:
@@ -222,8 +218,6 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
             warnings.warn("neither source scan has a colour image: the motion comes from the geometry "
                           "alone, which follows the skin less closely (give each scan its image, a "
                           "textured mesh or vertex colours)", TextureWarning, stacklevel=2)
-        if while_registering is not None:
-            while_registering()
         grid = source_neutral.grid
         prepared = registration_grid(source_neutral, motion)
 

@@ -275,20 +275,18 @@ def _stages(method, activations, faces: dict, second_thread, clock: _Clock):
         neutral = normalise_face(neutral_grid, reference_landmarks, method.normalisation)
     clock.lap("normalise")
     prepared = second_thread.submit(_prepare, method, neutral, target_ready, activations)
-    mirrors = []
-
-    def while_registering():
-        # the mirror planes are needed once the source is registered: fitted on the
-        # second thread while the registration runs on one core (during the texture
-        # tracking before it both cores are busy)
-        if method.uses_mirror(activations):
-            mirrors.append(second_thread.submit(_mirror_planes, (neutral, target_ready.result())))
+    mirrors = None
+    if method.uses_mirror(activations):
+        # needed once the source is registered; queued now so that the second thread fits
+        # them as soon as it is free (waiting for the registration left it idle for a
+        # third of the transfer, and the registration then shared its cores with them)
+        mirrors = second_thread.submit(lambda: _mirror_planes((neutral, target_ready.result())))
 
     with _naming("source_expressive"):
         expressive = method.align(neutral, neutral_grid, expressive_grid, activations)
     clock.lap("align")
     target_face = target_ready.result()  # read by now; a bad target fails before the long stages
-    model = method.model(neutral, expressive, activations, while_registering)
+    model = method.model(neutral, expressive, activations)
     clock.lap("model")
     if model.texture is not None:
         # the texture tracking ran inside the modelling; report it as its own stage
@@ -297,8 +295,8 @@ def _stages(method, activations, faces: dict, second_thread, clock: _Clock):
     animation = method.animate(model, target_face)
     clock.lap("animate")
     prepared.result()
-    for done in mirrors:
-        done.result()
+    if mirrors is not None:
+        mirrors.result()
     return animation, model
 
 
