@@ -144,7 +144,7 @@ def test_a_lid_rim_pulls_across_the_eye_but_leaves_its_slide_along_it_free(scans
     face = _normalised(scans["source"][1])
     eye = find_openings(face)["left eye"]
     grid = face.grid
-    rim_from = grid.points.reshape(-1, 3)[eye.rim(grid.points, grid.mask, "bottom")]
+    rim_from = grid.points.reshape(-1, 3)[eye.rim(grid, "bottom")]
     along, up = eye.axes()
     rim_to = rim_from.copy()
     rim_to[:, :2] += 2.0 * along + 1.0 * up
@@ -153,3 +153,103 @@ def test_a_lid_rim_pulls_across_the_eye_but_leaves_its_slide_along_it_free(scans
     moved = correction(rim_from)[:, :2]
     assert np.median(moved @ up) > 0.5          # pulled most of the way across
     assert abs(np.median(moved @ along)) < 0.2  # not slid along by the pairs
+
+
+def test_a_missing_landmark_is_estimated_as_its_partners_mirror_image(scans):
+    from tpscore.face.landmarks import mirror_estimate
+
+    landmarks = _normalised(scans["source"][1]).landmarks
+    for name in ("Inner left eye corner", "Outer right eye corner", "Left mouth corner"):
+        index = landmark_index(name)
+        missing = landmarks.copy()
+        missing[index] = np.nan
+        assert np.linalg.norm(mirror_estimate(missing, index) - landmarks[index]) < 3.0, name
+    # a midline landmark has no partner, nor has a landmark whose partner is missing too
+    assert mirror_estimate(landmarks, landmark_index("Nose tip")) is None
+    both = landmarks.copy()
+    both[[landmark_index("Inner left eye corner"), landmark_index("Inner right eye corner")]] = np.nan
+    assert mirror_estimate(both, landmark_index("Inner left eye corner")) is None
+
+
+def test_an_eye_with_a_missing_corner_is_still_found_and_cut(scans):
+    full = _normalised(scans["source"][1])
+    inner = landmark_index("Inner left eye corner")
+    landmarks = scans["source"][1].landmarks.copy()
+    landmarks[inner] = np.nan
+    neutral = _normalised(scans["source"][1].with_landmarks(landmarks))
+    eye, whole = find_openings(neutral)["left eye"], find_openings(full)["left eye"]
+    assert abs(eye.open_mm() - whole.open_mm()) < 1.0
+    assert np.abs(eye.corners - whole.corners).max() < 3.0
+    expressive = tpscore.expression.modelling.align_expressive(neutral, scans["source"][1], scans["closed"][1])
+    assert {o.name for o in moved_openings(openings(neutral), expressive.grid)} >= {"left eye", "right eye"}
+
+
+def _with_hole_over(grid, centre_xy, radii, colour=None):
+    """The grid with an elliptical hole in its depth around a point (x, y in the grid's
+    frame) and, given a colour, that colour painted into its image there."""
+    from tpscore.face.grid import FaceGrid
+
+    offset = (grid.points[..., :2] - centre_xy) / np.asarray(radii)
+    hole = grid.mask & ((offset ** 2).sum(axis=-1) < 1.0)
+    image = grid.image
+    if colour is not None:
+        image = np.array(image)
+        height, width = image.shape[:2]
+        uv = grid.uv[hole]
+        rows = np.clip((uv[:, 1] * height).astype(int), 0, height - 1)
+        columns = np.clip((uv[:, 0] * width).astype(int), 0, width - 1)
+        for dr in range(-2, 3):
+            for dc in range(-2, 3):
+                image[np.clip(rows + dr, 0, height - 1), np.clip(columns + dc, 0, width - 1)] = colour
+    points = np.where(hole[..., None], np.nan, grid.points)
+    return FaceGrid(points, grid.mask & ~hole, grid.uv, grid.landmarks, grid.landmark_vertices, image)
+
+
+def test_a_dropout_over_a_closed_eye_is_no_open_eye_unless_it_shows_the_eye(scans):
+    # A scanner drops the depth of skin it sees at a grazing angle: a hole whose colour
+    # is the skin's around it is not an opening; one that shows something else is.
+    neutral = _normalised(scans["source"][1])
+    closed = scans["closed"][1]
+    eye = find_openings(neutral)["left eye"]
+    corners = closed.landmarks[[landmark_index("Inner left eye corner"), landmark_index("Outer left eye corner")]]
+    centre = corners.mean(axis=0)[:2]
+    width = np.linalg.norm(corners[0] - corners[1])
+    for colour, seen_open in ((None, False), ((20, 20, 20), True)):
+        scan = _with_hole_over(closed, centre, (0.35 * width, 3.0), colour)
+        expressive = tpscore.expression.modelling.align_expressive(neutral, scans["source"][1], scan)
+        seen = eye.seen_in(expressive.grid)
+        hole_mm = np.nanmedian(seen.top - seen.bottom)
+        moved = {o.name for o in moved_openings(openings(neutral), expressive.grid)}
+        if seen_open:
+            assert hole_mm > 3.0 and "left eye" not in moved
+        else:
+            assert "left eye" in moved and not hole_mm > 0.5 * eye.open_mm()
+
+
+def test_closed_lids_meet_at_the_dark_line_the_image_shows(scans):
+    # Where the scan shows a closed eye without a hole, the upper lid's rim went to the
+    # top of the dark line where the lids meet (lashes, a slit the scan does not resolve)
+    neutral = _normalised(scans["source"][1])
+    eye = find_openings(neutral)["left eye"]
+    expressive = tpscore.expression.modelling.align_expressive(neutral, scans["source"][1], scans["closed"][1])
+    plain = eye.seen_in(expressive.grid)
+    middle = (eye.knots > 0.3) & (eye.knots < 0.7)
+    assert not np.isfinite(plain.bottom[middle]).all() or np.allclose(plain.bottom[middle], eye.bottom[middle])
+    # paint a dark line 1 mm above the open eye's lower edge into the closed eye's image
+    grid = expressive.grid
+    a, b = eye.coordinates(grid.points)
+    line = grid.mask & (a > 0.1) & (a < 0.9) & (np.abs(b - (np.interp(a, eye.knots, np.nan_to_num(eye.bottom)) + 1.0)) < 0.4)
+    image = np.array(grid.image)
+    height, width = image.shape[:2]
+    uv = grid.uv[line]
+    for dr in (-1, 0, 1):
+        rows = np.clip((uv[:, 1] * height).astype(int) + dr, 0, height - 1)
+        image[rows, np.clip((uv[:, 0] * width).astype(int), 0, width - 1)] = (15, 10, 10)
+    from tpscore.face.grid import FaceGrid
+    seen = eye.seen_in(FaceGrid(grid.points, grid.mask, grid.uv, grid.landmarks, grid.landmark_vertices, image))
+    found = middle & np.isfinite(seen.top)
+    assert found.sum() >= 0.8 * middle.sum()
+    # the rim ends at the line's top (within a millimetre at most knots), the lower lid stays
+    off = np.abs(seen.top[found] - (eye.bottom[found] + 1.4))
+    assert np.median(off) < 0.6 and (off < 1.0).mean() >= 0.75
+    assert np.allclose(seen.bottom[found], eye.bottom[found])

@@ -19,6 +19,7 @@ __all__ = [
     "landmark_index",
     "as_landmarks",
     "MIRROR_LANDMARK",
+    "mirror_estimate",
     "empty_landmarks",
     "landmark_map",
     "MIN_LANDMARKS",
@@ -99,6 +100,37 @@ def _mirror(name: str) -> str:
 
 #: For each landmark index, the index of its mirror image (itself on the midline).
 MIRROR_LANDMARK: tuple[int, ...] = tuple(landmark_index(_mirror(n)) for n in LANDMARK_NAMES)
+
+
+def mirror_estimate(landmarks: np.ndarray, index: int) -> np.ndarray | None:
+    """Where a missing landmark lies, from its partner on the other side of the face
+    reflected across the face's plane of symmetry; None without its partner or without
+    two other pairs to place the plane.
+
+    The plane is fitted to the landmarks themselves: its normal is the mean direction
+    from each right landmark to its left partner, and it passes through the pairs'
+    midpoints and the midline landmarks on average. A face is not exactly symmetric, so
+    the estimate is off by its asymmetry there (a millimetre or two on a typical face):
+    good enough to find an opening between two corners, not to replace a label.
+    """
+    landmarks = np.asarray(landmarks, dtype=np.float64)
+    partner = MIRROR_LANDMARK[index]
+    present = np.isfinite(landmarks).all(axis=1)
+    if partner == index or not present[partner]:
+        return None
+    pairs = [(i, j) for i, j in enumerate(MIRROR_LANDMARK)
+             if i < j and present[i] and present[j] and index not in (i, j)]
+    if len(pairs) < 2:
+        return None
+    left_minus_right = np.array([landmarks[i] - landmarks[j] if "left" in LANDMARK_NAMES[i].lower()
+                                 else landmarks[j] - landmarks[i] for i, j in pairs])
+    normal = left_minus_right.sum(axis=0)
+    normal /= np.linalg.norm(normal)
+    on_plane = [0.5 * (landmarks[i] + landmarks[j]) for i, j in pairs]
+    on_plane += [landmarks[i] for i, j in enumerate(MIRROR_LANDMARK) if i == j and present[i]]
+    offset = float(np.mean(np.asarray(on_plane) @ normal))
+    point = landmarks[partner]
+    return point - 2.0 * (point @ normal - offset) * normal
 
 
 def validate_anchor(owner: str, at, offset_mm) -> tuple[dict[str, float], tuple[float, float]]:

@@ -29,10 +29,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
-from .landmarks import landmark_index
+from .image import grey_levels, sample_image
+from .landmarks import landmark_index, mirror_estimate
 from .regions import smoothstep
 
-__all__ = ["Opening", "OPENING_WINDOWS", "find_openings", "opening_sides", "opening_cut", "grid_xy", "SIDE_REACH"]
+__all__ = ["Opening", "OPENING_WINDOWS", "find_openings", "opening_sides", "opening_cut", "grid_xy", "SIDE_REACH",
+           "DROPOUT_COLOUR_SHARE"]
 
 #: Knots along each opening's chord at which its line and edges are kept.
 N_KNOTS = 25
@@ -141,22 +143,27 @@ class Opening:
         split = np.nan_to_num(along * across)
         return np.where(above, 1.0, -1.0), split
 
-    def seen_in(self, points, mask, xy=None) -> "Opening":
+    def seen_in(self, grid, xy=None) -> "Opening":
         """This opening (same corners and line) with the edges of the hole that a grid
         of another scan of the face, in the same frame, shows at it (``xy``: the
-        grid's :func:`grid_xy`, when the caller has it already)."""
-        top, bottom = _hole_edges(self, points, mask, xy)[:2]
+        grid's :func:`grid_xy`, when the caller has it already). Where an eye shows no
+        hole, its edges are those of the dark line where its lids meet, when the
+        grid's colour image shows one (:func:`_meeting_line`)."""
+        xy = grid_xy(grid.points, grid.mask) if xy is None else xy
+        top, bottom = _hole_edges(self, grid, xy)[:2]
+        if self.name != "mouth" and grid.image is not None:
+            top, bottom = _meeting_line(self, grid, xy, top, bottom)
         return replace(self, top=top, bottom=bottom)
 
-    def rim(self, points, mask, side: str, xy=None) -> np.ndarray:
-        """Flat indices of the valid grid vertices that border the hole on one side
+    def rim(self, grid, side: str, xy=None) -> np.ndarray:
+        """Flat indices of the grid's valid vertices that border the hole on one side
         (``"top"``: the upper lid, the upper lip; ``"bottom"``), away from the corners
         (``xy`` as in :meth:`seen_in`)."""
-        hole = _hole_edges(self, points, mask, xy)[2]
+        hole = _hole_edges(self, grid, xy)[2]
         if hole is None:
             return np.zeros(0, dtype=np.int64)
-        border = ndimage.binary_dilation(hole, structure=np.ones((3, 3), dtype=bool)) & mask
-        a, b = self.coordinates(points)
+        border = ndimage.binary_dilation(hole, structure=np.ones((3, 3), dtype=bool)) & grid.mask
+        a, b = self.coordinates(grid.points)
         offset = b - self.line_at(a)
         on_side = offset > 0 if side == "top" else offset < 0
         return np.flatnonzero((border & on_side & (a > 0.05) & (a < 0.95)).ravel())
@@ -202,21 +209,31 @@ def grid_xy(points, mask) -> np.ndarray:
     return np.stack([rows, columns, np.ones_like(rows)], axis=-1) @ coefficients
 
 
-def _hole_edges(opening: Opening, points, mask, xy=None):
+#: A hole whose mean colour lies within this share of the skin's around it (the length
+#: of the colours' difference over that of the skin's colour) is a dropout: the scanner
+#: lost the depth there, but the camera saw skin. On the development scans an eye's or a
+#: mouth's hole is at 0.5 and more (dark, or an eye's white), a dropout at 0.1 or less.
+DROPOUT_COLOUR_SHARE = 0.25
+# The skin around a hole: the valid vertices within this many grid steps of it.
+_RING_STEPS = 2
+
+
+def _hole_edges(opening: Opening, grid, xy=None):
     """The hole a grid shows at the opening: its top and bottom edge per knot (NaN
     where there is none) and the hole's grid mask (None without one). ``xy``: the
-    grid's :func:`grid_xy`, when the caller has it already."""
+    grid's :func:`grid_xy`, when the caller has it already. A hole whose colour is the
+    skin's is a dropout, not the opening (:func:`_shows_skin`)."""
     nothing = np.full(N_KNOTS, np.nan)
+    mask = grid.mask
     if not mask.any():
         return nothing, nothing.copy(), None
-    a, b = opening.coordinates(grid_xy(points, mask) if xy is None else xy)
+    a, b = opening.coordinates(grid_xy(grid.points, mask) if xy is None else xy)
     offset = b - opening.line_at(a)
     up, down = (share * opening.width for share in opening.window[:2])
     candidates = ~mask & (a > -0.05) & (a < 1.05) & (offset < up) & (offset > -down)
     labels, _ = ndimage.label(candidates)
     core = candidates & (a > 0.25) & (a < 0.75) & (np.abs(offset) < _HOLE_REACH_MM)
-    ids = np.unique(labels[core])
-    ids = ids[ids > 0]
+    ids = [i for i in np.unique(labels[core]) if i > 0 and not _shows_skin(grid, labels == i)]
     if len(ids) == 0:
         return nothing, nothing.copy(), None
     hole = np.isin(labels, ids)
@@ -229,6 +246,87 @@ def _hole_edges(opening: Opening, points, mask, xy=None):
     if np.isfinite(top[middle]).mean() < _HOLE_SPAN:
         return nothing, nothing.copy(), None
     return top, bottom, hole
+
+
+def _shows_skin(grid, hole: np.ndarray) -> bool:
+    """Whether the grid's colour image shows skin like the skin around it in the hole
+    (H, W bool; :data:`DROPOUT_COLOUR_SHARE`): the scanner lost the depth of skin it saw
+    at a grazing angle or through a highlight, and a hole over a closed eye is then no
+    open eye. False without an image."""
+    if grid.image is None:
+        return False
+    ring = ndimage.binary_dilation(hole, iterations=_RING_STEPS) & grid.mask
+    if not ring.any():
+        return False
+    # the nearest pixel of each vertex: a mean over a hole needs no interpolation
+    height, width = grid.image.shape[:2]
+
+    def colours(where):
+        uv = grid.uv[where]
+        columns = np.clip(np.rint(uv[:, 0] * width - 0.5), 0, width - 1).astype(np.int64)
+        rows = np.clip(np.rint(uv[:, 1] * height - 0.5), 0, height - 1).astype(np.int64)
+        return grid.image[rows, columns].reshape(len(uv), -1).astype(np.float64)
+
+    skin = colours(ring).mean(axis=0)
+    return bool(np.linalg.norm(colours(hole).mean(axis=0) - skin) < DROPOUT_COLOUR_SHARE * np.linalg.norm(skin))
+
+
+#: Where a scan shows an eye without a hole, its lids meet at a dark line in the colour
+#: image (the lashes, or a slit narrower than the scan resolves): the run of the eye's
+#: vertical profile darker than this share of the skin's grey level there (its 75th
+#: percentile), near the open eye's lower edge (from :data:`_MEETING_BELOW_MM` below it
+#: to :data:`_MEETING_ABOVE_SHARE` of the eye's height above it).
+DARK_LINE_SHARE = 0.8
+_MEETING_BELOW_MM = 2.0
+_MEETING_ABOVE_SHARE = 0.35
+_MEETING_STEP_MM = 0.25
+# A knot's line more than this (mm) off the median of its own and its two neighbours'
+# is a freckle or a shadow, not the lids' line.
+_MEETING_OUTLIER_MM = 1.5
+
+
+def _meeting_line(opening: Opening, grid, xy, top, bottom):
+    """``top`` and ``bottom`` (per knot, NaN where the grid shows no hole) completed
+    where the grid shows no hole and ``opening`` (the open eye) has one, by the dark
+    line where the closed lids meet (:data:`DARK_LINE_SHARE`): the upper lid's rim went
+    to the line's top, the lower lid's stayed."""
+    knots = np.flatnonzero(~np.isfinite(top) & np.isfinite(opening.top) & np.isfinite(opening.bottom))
+    if len(knots) == 0:
+        return top, bottom
+    line = np.full(N_KNOTS, np.nan)
+    for k in knots:
+        height = opening.top[k] - opening.bottom[k]
+        b = np.arange(opening.bottom[k] - _MEETING_BELOW_MM, opening.bottom[k] + _MEETING_ABOVE_SHARE * height,
+                      _MEETING_STEP_MM)
+        grey = _grey_at(grid, xy, opening.points_at(np.full(len(b), opening.knots[k]), b))
+        if len(b) < 3 or not np.isfinite(grey).all():
+            continue
+        dark = grey < DARK_LINE_SHARE * np.percentile(grey, 75)
+        darkest = int(np.argmin(grey))
+        if dark[darkest]:
+            # the top of the run of dark samples around the darkest
+            line[k] = b[darkest + int(np.argmin(dark[darkest:])) - 1] if not dark[darkest:].all() else b[-1]
+    known = np.isfinite(line)
+    if known.sum() >= 3:
+        neighbours = ndimage.median_filter(np.where(known, line, np.nan)[known], size=3, mode="nearest")
+        line[np.flatnonzero(known)[np.abs(line[known] - neighbours) > _MEETING_OUTLIER_MM]] = np.nan
+    found = np.isfinite(line)
+    # the upper lid's rim ends at the line's top; the lower lid stays (the line's lower
+    # part is the lashes hanging over it)
+    return np.where(found, line, top), np.where(found, opening.bottom, bottom)
+
+
+def _grey_at(grid, xy, points_xy) -> np.ndarray:
+    """The grey level of the grid's colour image at x, y (k, 2): the grid's rows and
+    columns are affine in x, y (``xy``: :func:`grid_xy`), its u,v bilinear between
+    them; NaN beyond the grid."""
+    origin = xy[0, 0]
+    steps = np.column_stack([xy[1, 0] - origin, xy[0, 1] - origin])  # x, y per row and per column
+    cells = np.linalg.solve(steps, (np.asarray(points_xy, dtype=np.float64) - origin).T)
+    inside = ((cells >= 0) & (cells <= np.array(grid.mask.shape)[:, None] - 1)).all(axis=0)
+    uv = np.stack([ndimage.map_coordinates(grid.uv[..., c], cells, order=1, mode="nearest") for c in range(2)], axis=-1)
+    grey = grey_levels(sample_image(grid.image, uv)).astype(np.float64)
+    return np.where(inside, grey, np.nan)
 
 
 def _crease(face, opening: Opening) -> np.ndarray:
@@ -267,8 +365,12 @@ def find_openings(face) -> dict[str, Opening]:
     xy = grid_xy(grid.points, grid.mask) if grid.mask.any() else None  # one fit for the three openings
 
     def corner(name):
+        # a missing corner is its partner's mirror image: an eye or a mouth found
+        # between approximate corners is still cut where it opens, rather than smeared
         point = landmarks[landmark_index(name)]
-        return point[:2] if np.isfinite(point).all() else None
+        if not np.isfinite(point).all():
+            point = mirror_estimate(landmarks, landmark_index(name))
+        return None if point is None else point[:2]
 
     for side in ("right", "left"):
         inner, outer = corner(f"Inner {side} eye corner"), corner(f"Outer {side} eye corner")
@@ -299,7 +401,7 @@ def find_openings(face) -> dict[str, Opening]:
 def _with_hole(opening: Opening, grid, xy=None) -> Opening:
     """The opening with the hole the grid shows at it; its line then runs through the
     hole's middle (and to the corners)."""
-    top, bottom, _ = _hole_edges(opening, grid.points, grid.mask, xy)
+    top, bottom, _ = _hole_edges(opening, grid, xy)
     middle = 0.5 * (top + bottom)
     known = np.isfinite(middle)
     line = opening.line
