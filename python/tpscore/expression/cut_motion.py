@@ -133,12 +133,13 @@ def fit_local_correction(opening: Opening, side: str, points, motion, surface: M
     fixed_rhs = np.zeros(3 * n)
     if rim_from is not None and len(rim_from):
         # A rim's edge shows how far across the opening it went, not how far it slid
-        # along the edge: its pairs pull across the chord and in depth only, and the
-        # slide comes from the skin beside it.
+        # along the edge, nor its depth (under a closed eye's rim the scan's surface is
+        # the upper lid in front of it): its pairs pull across the chord only; the slide
+        # comes from the skin beside it, the depth from the point-to-plane pulls.
         rim_basis = lattice.basis(rim_from[:, :2]).multiply(correction.weight(rim_from)[:, None]).tocsr()
         residual = rim_to - rim_from - motion(rim_from)
-        along_chord = np.append(opening.axes()[0], 0.0)
-        across = np.eye(3) - np.outer(along_chord, along_chord)
+        across_chord = np.append(opening.axes()[1], 0.0)
+        across = np.outer(across_chord, across_chord)
         gram = rim_basis.T @ rim_basis
         fixed = fixed + RIM_WEIGHT * sp.bmat([[across[a, b] * gram for b in range(3)] for a in range(3)])
         fixed_rhs = RIM_WEIGHT * np.concatenate([rim_basis.T @ (residual @ across[a]) for a in range(3)])
