@@ -24,12 +24,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from ..face.landmarks import N_LANDMARKS
 from ..face.openings import Opening, find_openings, grid_xy, opening_sides
 from ..geometry import off_surface, robust_scale, tukey_weights
-from ..lattice import BSplineLattice
+from ..lattice import BSplineLattice, LatticeSystem, symmetric_blocks
 from ..mesh import face_normals
 from ..spatial import MeshSurface
 
@@ -126,7 +125,9 @@ def fit_local_correction(opening: Opening, side: str, points, motion, surface: M
                                    np.asarray(texture_weights, dtype=np.float64)[inside], 0.0)
         texture_targets = np.nan_to_num(texture_targets)
     lattice = BSplineLattice(data[:, :2].min(axis=0) - 1.0, data[:, :2].max(axis=0) + 1.0, LOCAL_SPACING_MM)
-    basis = lattice.basis(data[:, :2]).multiply(weight[:, None]).tocsr()
+    # the data points' stencils, the system's pattern and its factor's ordering and
+    # symbolic analysis once; each iteration fills in values and refactorises
+    system = LatticeSystem(lattice, data[:, :2])
     start = motion(data)
     n = lattice.n_nodes
     fixed = LOCAL_BENDING * sp.block_diag([lattice.bending()] * 3) + LOCAL_REST * sp.identity(3 * n)
@@ -140,14 +141,15 @@ def fit_local_correction(opening: Opening, side: str, points, motion, surface: M
         residual = rim_to - rim_from - motion(rim_from)
         across_chord = np.append(opening.axes()[1], 0.0)
         across = np.outer(across_chord, across_chord)
-        gram = rim_basis.T @ rim_basis
-        fixed = fixed + RIM_WEIGHT * sp.bmat([[across[a, b] * gram for b in range(3)] for a in range(3)])
+        fixed = fixed + RIM_WEIGHT * sp.kron(across, rim_basis.T @ rim_basis)
         fixed_rhs = RIM_WEIGHT * np.concatenate([rim_basis.T @ (residual @ across[a]) for a in range(3)])
+    fixed_values = system.aligned(fixed)
 
     normals_of = face_normals(surface.vertices, surface.faces)
     values = np.zeros((n, 3))
     for _ in range(LOCAL_ITERATIONS):
-        current = basis @ values
+        # the correction at the data points, faded by their weight
+        current = weight[:, None] * (system.basis @ values)
         moved = data + start + current
         closest = surface.closest_point(moved)
         normal = normals_of[closest.triangles]
@@ -168,10 +170,10 @@ def fit_local_correction(opening: Opening, side: str, points, motion, surface: M
             w = texture_weights * tukey_weights(np.linalg.norm(residual, axis=1), _LOCAL_TUKEY * scale)
             blocks = blocks + w[:, None, None] * tangent
             pulled = pulled + w[:, None] * np.einsum("iab,ib->ia", tangent, wanted)
-        matrix = sp.bmat([[basis.T @ basis.multiply(blocks[:, a, b][:, None]) for b in range(3)] for a in range(3)],
-                         format="csc") + fixed
-        rhs = np.concatenate([basis.T @ pulled[:, a] for a in range(3)]) + fixed_rhs
-        values = spla.spsolve(matrix.tocsc(), rhs).reshape(3, n).T
+        # a data point's stencil is scaled by its weight: its 3 x 3 block by the square
+        data_values = system.data_term(weight[:, None] ** 2 * symmetric_blocks(blocks))
+        rhs = np.concatenate([system.basis.T @ (weight * pulled[:, a]) for a in range(3)]) + fixed_rhs
+        values = system.solve(fixed_values + data_values, rhs).reshape(3, n).T
     return LocalCorrection(opening, side, lattice, values)
 
 
