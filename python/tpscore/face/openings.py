@@ -294,11 +294,13 @@ def _meeting_line(opening: Opening, grid, xy, top, bottom):
     if len(knots) == 0:
         return top, bottom
     line = np.full(N_KNOTS, np.nan)
-    for k in knots:
-        height = opening.top[k] - opening.bottom[k]
-        b = np.arange(opening.bottom[k] - _MEETING_BELOW_MM, opening.bottom[k] + _MEETING_ABOVE_SHARE * height,
-                      _MEETING_STEP_MM)
-        grey = _grey_at(grid, xy, opening.points_at(np.full(len(b), opening.knots[k]), b))
+    profiles = [np.arange(opening.bottom[k] - _MEETING_BELOW_MM,
+                          opening.bottom[k] + _MEETING_ABOVE_SHARE * (opening.top[k] - opening.bottom[k]),
+                          _MEETING_STEP_MM) for k in knots]
+    # every knot's profile sampled at once (the image is read once)
+    samples = np.concatenate([opening.points_at(np.full(len(b), opening.knots[k]), b) for k, b in zip(knots, profiles)])
+    greys = np.split(_grey_at(grid, xy, samples), np.cumsum([len(b) for b in profiles])[:-1])
+    for k, b, grey in zip(knots, profiles, greys):
         if len(b) < 3 or not np.isfinite(grey).all():
             continue
         dark = grey < DARK_LINE_SHARE * np.percentile(grey, 75)
