@@ -83,10 +83,11 @@ def ensure_scans(shared: Path, out: Path, subjects: list[int], scan_args: list[s
     the scan codes given."""
     # scans written before the generator drew colour images are written again
     images = "--texture-scale" not in scan_args or scan_args[list(scan_args).index("--texture-scale") + 1] != "0"
-    last = codes[-1] if codes else "LFAU_20_0"
+    # every code is looked for: a folder written by a run with fewer codes is made again
+    wanted = ["N_N_0", *(codes or ["LFAU_20_0"])]
     missing = [s for s in subjects
-               if not Path(f"{scan_path(out, s, last)}_gt.npz").is_file()
-               or (images and not Path(f"{scan_path(out, s, last)}.png").is_file())]
+               if not all(Path(f"{scan_path(out, s, code)}_gt.npz").is_file()
+                          and (not images or Path(f"{scan_path(out, s, code)}.png").is_file()) for code in wanted)]
     if missing:
         print(f"generating scans of subjects {missing} in {out} ...", flush=True)
         expressions = ["--expressions", *codes] if codes else []
