@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tpscore.expression.alignment import align_rigid, fit_mirror_symmetry, rigid_landmark_fit
+from tpscore.expression.alignment import align_rigid, fit_mirror_symmetry, residual_rigid_motion, rigid_landmark_fit
 from tpscore.face.normalise import FrameTransform
 from tpscore.face.regions import region_weight
 from tpscore.face.resampling import resample_scan
@@ -106,3 +106,21 @@ def test_mirror_symmetry_needs_landmark_pairs():
     landmarks[:2] = grid.landmarks[:2]
     with pytest.raises(ValueError, match="at least 3 landmarks"):
         fit_mirror_symmetry(grid.with_landmarks(landmarks))
+
+
+def test_residual_rigid_motion_prefers_the_anchored_still_part_over_a_larger_moved_block():
+    # a curved patch: the lower 60 % rises 1 mm as one block, the upper 40 % stays still
+    # (anger's cheeks and nose rising together under a still bridge)
+    x, y = np.meshgrid(np.linspace(-50, 50, 60), np.linspace(-60, 60, 60))
+    points = np.column_stack([x.ravel(), y.ravel(), -0.004 * (x.ravel() ** 2 + y.ravel() ** 2)])
+    block = points[:, 1] < 12.0
+    motion = np.zeros_like(points)
+    motion[block, 1] = 1.0
+    motion += np.random.default_rng(2).normal(scale=0.05, size=motion.shape)
+    prior = np.ones(len(points))
+    largest = residual_rigid_motion(points, motion, prior)
+    anchored = residual_rigid_motion(points, motion, prior, anchor=(~block).astype(float))
+    # without an anchor the larger block is taken as still, and the still part is the one that "moved"
+    assert np.allclose(largest.apply(points[~block])[:, 1] - points[~block, 1], 1.0, atol=0.1)
+    # counting the still part twice picks it: the motion left is the block's alone
+    assert np.abs(anchored.apply(points) - points).max() < 0.1

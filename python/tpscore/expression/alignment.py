@@ -271,11 +271,15 @@ _TEMPLE_SPAN = ((-0.3, -0.1), (0.9, 0.7))
 _INNER_EYES_MM, _OUTER_EYES_MM = 37.0, 89.0
 
 
-def stable_weight(points, landmarks) -> np.ndarray:
+STABLE_PARTS = ("bridge", "forehead", "temples")
+
+
+def stable_weight(points, landmarks, parts=STABLE_PARTS, elsewhere: float = STABLE_ELSEWHERE) -> np.ndarray:
     """Weight in [0, 1] of each point (..., 3) of a face (roughly frontal, +y up) as a
     part that no expression moves much: 1 on the nose's bridge, the upper forehead and
-    the temples (bone under thin skin), :data:`STABLE_ELSEWHERE` elsewhere, 0 at NaN
-    points. Placed from the eye corners (the nose saddles if they are missing)."""
+    the temples (bone under thin skin; ``parts`` names those wanted),
+    ``elsewhere`` (:data:`STABLE_ELSEWHERE`) elsewhere, 0 at NaN points. Placed from the
+    eye corners (the nose saddles if they are missing)."""
     lm = np.asarray(landmarks, dtype=np.float64)
 
     def corner(name):
@@ -299,7 +303,8 @@ def stable_weight(points, landmarks) -> np.ndarray:
     forehead = smoothstep(*_FOREHEAD_FROM, up)
     temples = (smoothstep(_TEMPLE_FROM[0] * outer_mm, _TEMPLE_FROM[1] * outer_mm, across)
                * smoothstep(*_TEMPLE_SPAN[0], up) * smoothstep(*_TEMPLE_SPAN[1], up))
-    weight = np.maximum.reduce([bridge, forehead, temples, np.full(up.shape, STABLE_ELSEWHERE)])
+    found = {"bridge": bridge, "forehead": forehead, "temples": temples}
+    weight = np.maximum.reduce([*(found[part] for part in parts), np.full(up.shape, float(elsewhere))])
     return np.where(np.isfinite(weight), weight, 0.0)
 
 
@@ -312,7 +317,15 @@ MODE_SCALE_MM = 0.3
 MODE_STARTS_MM = (-2.0, 2.0)
 
 
-def residual_rigid_motion(points, motion, prior, *, iterations: int = 10, tukey_factor: float = 3.0,
+#: The stable parts whose points count twice when the residual rigid motion picks the
+#: largest part that moved as one: the bone under the nose's bridge and the temples.
+#: Not the forehead, which raised brows carry up as a block. In whole expressions that
+#: move every part of the face a little (anger's cheeks and nose rise by about a
+#: millimetre together), the largest such part need not be the still one.
+ANCHOR_PARTS = ("bridge", "temples")
+
+
+def residual_rigid_motion(points, motion, prior, *, anchor=None, iterations: int = 10, tukey_factor: float = 3.0,
                           min_scale_mm: float = 0.3) -> FrameTransform:
     """The rigid motion left in a registered field: the rigid map E that takes the
     points p (m, 3) to p + motion(p) over the largest part of the face that moved as one.
@@ -323,12 +336,14 @@ def residual_rigid_motion(points, motion, prior, *, iterations: int = 10, tukey_
     from it moved up and down (:data:`MODE_STARTS_MM`), fits over every point with a
     fixed small scale (:data:`MODE_SCALE_MM`) each settle on a set of points that one
     rigid motion explains; the largest set wins (the still part: a part that moved as a
-    block, the forehead under raised brows or the dropped jaw, is a smaller one)."""
+    block, the forehead under raised brows or the dropped jaw, is a smaller one). A point
+    counts 1 + ``anchor`` (m,) in that choice (none given: 1)."""
     p = np.asarray(points, dtype=np.float64)
     moved = p + np.asarray(motion, dtype=np.float64)
     prior = np.asarray(prior, dtype=np.float64)
+    count = 1.0 + (np.zeros(len(p)) if anchor is None else np.asarray(anchor, dtype=np.float64))
     ok = np.isfinite(moved).all(axis=1) & (prior > 0)
-    p, moved, prior = p[ok], moved[ok], prior[ok]
+    p, moved, prior, count = p[ok], moved[ok], prior[ok], count[ok]
     if len(p) < 10:
         return FrameTransform.identity()
     trusted = prior > 0.5 if np.count_nonzero(prior > 0.5) >= 10 else slice(None)
@@ -348,7 +363,7 @@ def residual_rigid_motion(points, motion, prior, *, iterations: int = 10, tukey_
                 return transform, 0.0
             transform = similarity_transform(p, moved, scale=False, weights=weight)
         weight = tukey_weights(np.linalg.norm(transform.apply(p) - moved, axis=1), tukey_factor * MODE_SCALE_MM)
-        return transform, float(weight.sum())
+        return transform, float(weight @ count)
 
     starts = [FrameTransform.identity(), start]
     for shift in MODE_STARTS_MM:

@@ -25,7 +25,7 @@ from ..face.normalise import NormalisedFace, landmark_transform
 from ..face.openings import find_openings
 from ..face.regions import HALVES, region_weight
 from .action_units import ActionUnit, ActionUnitLibrary, Activation, WHOLE_FACE
-from .alignment import Realigned, align_rigid, fit_mirror_symmetry, residual_rigid_motion, stable_weight
+from .alignment import ANCHOR_PARTS, Realigned, align_rigid, fit_mirror_symmetry, residual_rigid_motion, stable_weight
 from .cut_motion import CutMotion, moved_openings, register_cut
 from .mirror import Coverage, MirroredMotion
 from .registration import DenseMotion, MotionOptions, RegistrationGrid, prepare_registration, register_surfaces
@@ -238,10 +238,12 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
 def realigned(field, face: NormalisedFace):
     """The field with the rigid motion left in it taken out
     (:func:`tpscore.expression.alignment.residual_rigid_motion` over the face's valid
-    vertices, weighted by :func:`stable_weight`): the alignment of a whole expression
+    vertices, weighted by :func:`stable_weight`, the bridge's and the temples' points
+    counting twice in the choice of the still part): the alignment of a whole expression
     has no part it knows to be still."""
     points = face.grid.points[face.grid.mask]
-    rigid = residual_rigid_motion(points, field(points), stable_weight(points, face.landmarks))
+    rigid = residual_rigid_motion(points, field(points), stable_weight(points, face.landmarks),
+                                  anchor=stable_weight(points, face.landmarks, ANCHOR_PARTS, elsewhere=0.0))
     if isinstance(field, CutMotion):
         return field.split(lambda side: Realigned(side, rigid))
     return Realigned(field, rigid)
