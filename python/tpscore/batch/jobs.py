@@ -26,7 +26,8 @@ from typing import ClassVar
 import numpy as np
 
 from ..adaptation import AdaptOptions, adapt
-from ..expression import TransferOptions, default_library, transfer
+from ..expression import TransferOptions, transfer
+from ..expression.action_units import shipped_library
 from ..face import io
 from ..face.landmarks import LANDMARK_NAMES
 from .scores import adaptation_rms
@@ -52,11 +53,6 @@ _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+=-]*$")
 #: Template vertices farther than this (mm) from the template's nose tip are left out of
 #: an adaptation's score: the scanner does not see the ears and neck a template may have.
 ADAPT_SCORE_RADIUS_MM = 80.0
-
-
-@lru_cache(maxsize=1)
-def _library():
-    return default_library()
 
 
 def _path(value, what: str) -> str:
@@ -198,7 +194,7 @@ class TransferJob(Job):
             set_(self, attr, _optional_path(getattr(self, attr), attr))
         if not isinstance(self.action_units, str) or not self.action_units.strip():
             raise ValueError(f"action_units must be a non-empty string, got {self.action_units!r}")
-        _library().parse(self.action_units)  # an unknown AU is refused now, not in a worker
+        shipped_library().parse(self.action_units)  # an unknown AU is refused now, not in a worker
         try:
             magnitude = float(self.magnitude)
         except (TypeError, ValueError):
@@ -463,7 +459,7 @@ def transfer_jobs(folder, *, action_units=None, sources=None, targets=None, pair
         wanted = {}
         for label in action_units:
             normalised = _normalise_label(label)
-            _library().parse(normalised)  # ValueError naming an unknown AU or emotion
+            shipped_library().parse(normalised)  # ValueError naming an unknown AU or emotion
             wanted[normalised] = str(label)
     targets_of: dict[int, list[int]] = {}
     for s, t in _pairs(sources, targets, pairs):
@@ -477,7 +473,7 @@ def transfer_jobs(folder, *, action_units=None, sources=None, targets=None, pair
                 continue
             if wanted is None:
                 try:
-                    _library().parse(label)
+                    shipped_library().parse(label)
                 except ValueError:
                     continue  # an AU the library does not have (a user's own library may lack some)
             shown.add(label)

@@ -18,6 +18,7 @@ off the reference surface when the points are placed.
 """
 from __future__ import annotations
 
+import functools
 import json
 import re
 from dataclasses import dataclass, field
@@ -38,7 +39,7 @@ __all__ = [
     "WholeExpression",
     "Activation",
     "ActionUnitLibrary",
-    "default_library",
+    "default_library", "shipped_library",
     "REGIONS",
     "WHOLE_FACE",
     "ALL",
@@ -375,6 +376,15 @@ class ActionUnitLibrary:
 def default_library() -> ActionUnitLibrary:
     """The shipped library: every action unit of the Bosphorus database (AUs 1, 2, 4, 5,
     6, 7, 9, 10, 12, 14, 15, 16, 17, 18, 20, 22, 23, 24, 25, 26, 27, 28, 34, 43, 44),
-    the regions they act in and the six emotions (and contempt)."""
+    the regions they act in and the six emotions (and contempt). A new library each
+    call, which the caller may change."""
     with resources.files("tpscore").joinpath("data/action_units.json").open("r", encoding="utf-8") as fh:
         return ActionUnitLibrary.from_dict(json.load(fh), source="action_units.json")
+
+
+@functools.cache
+def shipped_library() -> ActionUnitLibrary:
+    """The shipped library read once, for the functions that are given none: reading and
+    checking it costs about 8 ms, a few percent of a transfer. Only read, never handed
+    to a caller (who gets their own from :func:`default_library`)."""
+    return default_library()

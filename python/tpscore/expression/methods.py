@@ -21,7 +21,7 @@ import numpy as np
 from ..face.grid import FaceGrid
 from ..face.landmarks import landmark_map
 from ..face.normalise import NormalisedFace, normalise_face
-from .action_units import ActionUnitLibrary, Activation, default_library
+from .action_units import ActionUnitLibrary, Activation, shipped_library
 from .animation import Animation, by_region, carry, field_labels
 from .modelling import (ControlPointMotion, ExpressionModel, activation_weight, align_expressive, dense_motion,
                         mirrored, needs_realignment, openings, place_control_points, realigned, registration_grid,
@@ -148,7 +148,7 @@ def model_expression(source_neutral: NormalisedFace, source_expressive: Normalis
                      library: ActionUnitLibrary | None = None) -> ExpressionModel:
     """The source's motion (both faces in the reference frame, the expressive one aligned
     by the method's :meth:`align`), by the method the options name."""
-    method = transfer_method(options, reference, library or default_library())
+    method = transfer_method(options, reference, library or shipped_library())
     return method.model(source_neutral, source_expressive, activations)
 
 

@@ -27,7 +27,7 @@ from ..face.loading import load_scan
 from ..face.normalise import NormalisedFace, normalise_face
 from ..face.pose import check_landmarks
 from ..face.regions import region_boundary
-from .action_units import ActionUnitLibrary, default_library
+from .action_units import ActionUnitLibrary, shipped_library
 from .animation import Animation, magnitude_weights
 from .methods import transfer_method
 from .modelling import ExpressionModel, coverage, mirror_plane
@@ -212,7 +212,7 @@ def transfer(source_neutral: Scan, source_expressive: Scan, target: Scan, action
     """
     faces = {"source_neutral": source_neutral, "source_expressive": source_expressive, "target": target}
     _check_arguments(faces, options, reference, library)
-    library = library or default_library()
+    library = library or shipped_library()
     activations = library.parse(action_units)
     reference_face = (reference or load_average_face()).as_normalised_face()
     method = transfer_method(options, reference_face, library)

@@ -15,7 +15,8 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from ..expression import ActionUnitLibrary, TransferOptions, TransferResult, default_library, transfer
+from ..expression import ActionUnitLibrary, TransferOptions, TransferResult, transfer
+from ..expression.action_units import shipped_library
 from ..face.grid import DEFAULT_GRID_SHAPE, FaceGrid, _as_shape
 from ..face.loading import load_scan, load_scans
 from ..showcase.viewer import write_rig_html
@@ -218,7 +219,7 @@ def rig(source_neutral: Scan | None, expressions: Mapping[str, Scan] | str | os.
     grid = _as_shape(grid, "grid")
     if library is not None and not isinstance(library, ActionUnitLibrary):
         raise ValueError(f"library must be an ActionUnitLibrary, got {type(library).__name__}")
-    library = library or default_library()
+    library = library or shipped_library()
     say = progress or (lambda message: None)
     began = time.perf_counter()
     neutral, scans = _expression_scans(source_neutral, expressions, library, say)
