@@ -142,3 +142,21 @@ def test_unreadable_library_names_the_file(tmp_path):
     path.write_text(json.dumps({"emotions": {}}))
     with pytest.raises(ValueError, match="action_units"):
         ActionUnitLibrary.from_json(path)
+
+
+def test_the_shared_shipped_library_is_read_only_and_pickles_as_itself():
+    import copy
+    import pickle
+
+    from tpscore.expression.action_units import shipped_library
+
+    shared = shipped_library()
+    assert shared.codes == default_library().codes
+    with pytest.raises(ValueError, match="read-only"):
+        shared.add_emotion("smirk", {"12L": 1.0})
+    assert "smirk" not in shipped_library().emotions
+    assert pickle.loads(pickle.dumps(shared)) is shared
+    assert copy.deepcopy(shared) is shared
+    own = default_library()
+    own.add_emotion("smirk", {"12L": 1.0})  # a caller's own library changes freely
+    assert "smirk" in own.emotions and "smirk" not in shared.emotions

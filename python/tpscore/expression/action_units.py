@@ -24,6 +24,7 @@ import re
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
+from types import MappingProxyType
 from typing import Mapping
 
 import numpy as np
@@ -213,6 +214,17 @@ class ActionUnitLibrary:
     emotions: dict[str, dict[str, float]] = field(default_factory=dict)
     regions: dict[str, Region] = field(default_factory=dict)
 
+    def _check_writable(self) -> None:
+        if isinstance(self.action_units, MappingProxyType):
+            raise ValueError("this is the shipped library that transfers share, and it is read-only: "
+                             "tpscore.default_library() gives a library of your own to change")
+
+    def __reduce__(self):
+        # the shared read-only library pickles as a reference to itself
+        if isinstance(self.action_units, MappingProxyType):
+            return shipped_library, ()
+        return super().__reduce__()
+
     @classmethod
     def from_json(cls, path) -> "ActionUnitLibrary":
         """Load a library from a JSON file in the format of the shipped one."""
@@ -244,6 +256,7 @@ class ActionUnitLibrary:
         atomic_write(path, json.dumps(doc, indent=1).encode("utf-8"))
 
     def add(self, action_unit: ActionUnit, *, replace: bool = False) -> None:
+        self._check_writable()
         if action_unit.code in self.action_units and not replace:
             raise ValueError(f"AU {action_unit.code} is already in the library (pass replace=True)")
         if action_unit.region not in REGIONS and action_unit.region not in self.regions:
@@ -253,6 +266,7 @@ class ActionUnitLibrary:
 
     def add_region(self, region: Region, *, replace: bool = False) -> None:
         """Add a named region (:class:`tpscore.face.regions.Region`) AUs can act in."""
+        self._check_writable()
         if region.name in REGIONS:
             raise ValueError(f"region {region.name!r} is built in; choose another name")
         if region.name in self.regions and not replace:
@@ -261,6 +275,7 @@ class ActionUnitLibrary:
 
     def add_emotion(self, name: str, recipe: Mapping[str, float]) -> None:
         """Register an emotion as weights over AU codes (with optional side, e.g. '12L')."""
+        self._check_writable()
         recipe = {str(k): float(v) for k, v in recipe.items()}
         for code in recipe:
             self._split_code(code)  # raises for an unknown AU
@@ -384,7 +399,10 @@ def default_library() -> ActionUnitLibrary:
 
 @functools.cache
 def shipped_library() -> ActionUnitLibrary:
-    """The shipped library read once, for the functions that are given none: reading and
-    checking it costs about 8 ms, a few percent of a transfer. Only read, never handed
-    to a caller (who gets their own from :func:`default_library`)."""
-    return default_library()
+    """The shipped library read once and shared, read-only, by the functions that are
+    given none (reading and checking it costs about 8 ms, a few percent of a transfer).
+    A result keeps it (``TransferResult.model.library``); changing it raises a
+    ValueError pointing to :func:`default_library`."""
+    library = default_library()
+    return ActionUnitLibrary(MappingProxyType(library.action_units), MappingProxyType(library.emotions),
+                             MappingProxyType(library.regions))
