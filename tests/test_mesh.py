@@ -57,9 +57,14 @@ def assert_all_match_reference(vertices, faces):
     np.testing.assert_allclose(mesh.face_normals(vertices, faces),
                                reference.face_normals(vertices, faces), rtol=0, atol=1e-12)
     for weighting in ("area", "angle", "uniform"):
-        np.testing.assert_allclose(mesh.vertex_normals(vertices, faces, weighting=weighting),
-                                   reference.vertex_normals(vertices, faces, weighting),
-                                   rtol=0, atol=1e-10)
+        # a normal amplifies rounding by its total weight over its sum's length (large at a
+        # fold of a jittered grid, where its faces' normals nearly cancel)
+        total, total_weight = reference.vertex_normal_sums(vertices, faces, weighting)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            amplification = np.nan_to_num(total_weight / np.linalg.norm(total, axis=1), nan=1.0, posinf=1.0)
+        error = np.abs(mesh.vertex_normals(vertices, faces, weighting=weighting)
+                       - reference.vertex_normals(vertices, faces, weighting))
+        assert (error <= 1e-10 + 1e-13 * amplification[:, None]).all(), weighting
     laplacian = mesh.cotan_laplacian(vertices, faces)
     expected = reference.cotan_laplacian(vertices, faces)
     assert laplacian.shape == (n, n)

@@ -55,6 +55,18 @@ def face_normals(vertices, faces):
 
 
 def vertex_normals(vertices, faces, weighting="area"):
+    total, total_weight = vertex_normal_sums(vertices, faces, weighting)
+    norm = np.linalg.norm(total, axis=1, keepdims=True)
+    # Normals that cancel to rounding noise give a zero normal, as in the core.
+    keep = norm > CANCELLATION * total_weight[:, None]
+    return np.divide(total, norm, out=np.zeros_like(total), where=keep)
+
+
+def vertex_normal_sums(vertices, faces, weighting="area"):
+    """Each vertex's weighted sum of its faces' unit normals (n, 3) and the sum of the
+    weights (n,): the normal is the first over its length. Their ratio, total weight over
+    the sum's length, is how much the normal amplifies rounding (large where the faces'
+    normals nearly cancel, at a fold)."""
     faces = _live_faces(faces)
     cross, dot, _ = _corner_geometry(vertices, faces)
     double_area = np.linalg.norm(cross, axis=1)
@@ -72,10 +84,7 @@ def vertex_normals(vertices, faces, weighting="area"):
     total = np.zeros_like(vertices)
     np.add.at(total, faces.reshape(-1), contribution.reshape(-1, 3))
     total_weight = np.bincount(faces.reshape(-1), weights=weight.reshape(-1), minlength=len(vertices))
-    norm = np.linalg.norm(total, axis=1, keepdims=True)
-    # Normals that cancel to rounding noise give a zero normal, as in the core.
-    keep = norm > CANCELLATION * total_weight[:, None]
-    return np.divide(total, norm, out=np.zeros_like(total), where=keep)
+    return total, total_weight
 
 
 def cotan_laplacian(vertices, faces):
