@@ -59,11 +59,14 @@ def _limit_lines(benchmarks):
     if not peaks or not with_flops:
         return []
     peak = max(b.extra_info["peak_flops"] / b.stats.min for b in peaks)
+    # OpenBLAS picks its kernels from the CPU whatever NumPy's switches say;
+    # OPENBLAS_CORETYPE (make bench sets it with TPSCORE_SIMD) holds it to the same set
+    core = os.environ.get("OPENBLAS_CORETYPE")
     lines = [
         "",
         f"Arithmetic limits: the measured peak is {peak / 1e9:.0f} GFlop/s (a float64 matrix "
-        "product, OpenBLAS through NumPy, all threads, fastest round); limit = the "
-        "benchmark's flops / that peak.",
+        f"product, OpenBLAS through NumPy{f' with its {core} kernels' if core else ''}, all threads, "
+        "fastest round); limit = the benchmark's flops / that peak.",
         "",
         "| benchmark | flops | limit | tpscore min | tpscore / limit |",
         "|---|---:|---:|---:|---:|",
