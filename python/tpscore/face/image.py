@@ -11,7 +11,7 @@ import numpy as np
 
 from ..raster import bilinear
 
-__all__ = ["as_colour_image", "sample_image", "grey_levels", "check_image_fits"]
+__all__ = ["as_colour_image", "sample_image", "pixel_coordinates", "grey_levels", "check_image_fits"]
 
 # Rec. 601 luma weights: the grey level a camera's sensor response is closest to.
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
@@ -46,11 +46,17 @@ def sample_image(image: np.ndarray, uv) -> np.ndarray:
 
     Samples beyond the image take the colour of its border.
     """
+    return bilinear(image, *pixel_coordinates(image, uv))
+
+
+def pixel_coordinates(image: np.ndarray, uv) -> tuple[np.ndarray, np.ndarray]:
+    """Column and row (float, pixel centres at integers) of (..., 2) u,v in an (h, w, ...)
+    image, held to the image."""
     uv = np.asarray(uv, dtype=np.float64)
     height, width = image.shape[:2]
     x = np.clip(uv[..., 0] * width - 0.5, 0.0, width - 1.0)
     y = np.clip(uv[..., 1] * height - 0.5, 0.0, height - 1.0)
-    return bilinear(image, x, y)
+    return x, y
 
 
 def grey_levels(colours: np.ndarray) -> np.ndarray:

@@ -19,6 +19,7 @@ __all__ = [
     "landmark_index",
     "as_landmarks",
     "MIRROR_LANDMARK",
+    "MIRROR_PAIRS",
     "mirror_estimate",
     "empty_landmarks",
     "landmark_map",
@@ -100,6 +101,9 @@ def _mirror(name: str) -> str:
 
 #: For each landmark index, the index of its mirror image (itself on the midline).
 MIRROR_LANDMARK: tuple[int, ...] = tuple(landmark_index(_mirror(n)) for n in LANDMARK_NAMES)
+#: Each left landmark with its right partner, (left, right) by index.
+MIRROR_PAIRS: tuple[tuple[int, int], ...] = tuple(
+    (i, j) for i, j in enumerate(MIRROR_LANDMARK) if i != j and "left" in LANDMARK_NAMES[i].lower())
 
 
 def mirror_estimate(landmarks: np.ndarray, index: int) -> np.ndarray | None:
@@ -118,13 +122,11 @@ def mirror_estimate(landmarks: np.ndarray, index: int) -> np.ndarray | None:
     present = np.isfinite(landmarks).all(axis=1)
     if partner == index or not present[partner]:
         return None
-    pairs = [(i, j) for i, j in enumerate(MIRROR_LANDMARK)
-             if i < j and present[i] and present[j] and index not in (i, j)]
+    pairs = [(left, right) for left, right in MIRROR_PAIRS
+             if present[left] and present[right] and index not in (left, right)]
     if len(pairs) < 2:
         return None
-    left_minus_right = np.array([landmarks[i] - landmarks[j] if "left" in LANDMARK_NAMES[i].lower()
-                                 else landmarks[j] - landmarks[i] for i, j in pairs])
-    normal = left_minus_right.sum(axis=0)
+    normal = np.array([landmarks[left] - landmarks[right] for left, right in pairs]).sum(axis=0)
     normal /= np.linalg.norm(normal)
     on_plane = [0.5 * (landmarks[i] + landmarks[j]) for i, j in pairs]
     on_plane += [landmarks[i] for i, j in enumerate(MIRROR_LANDMARK) if i == j and present[i]]

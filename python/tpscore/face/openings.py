@@ -29,7 +29,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
-from .image import grey_levels, sample_image
+from .image import grey_levels, pixel_coordinates, sample_image
 from .landmarks import landmark_index, mirror_estimate
 from .regions import smoothstep
 
@@ -259,13 +259,9 @@ def _shows_skin(grid, hole: np.ndarray) -> bool:
     if not ring.any():
         return False
     # the nearest pixel of each vertex: a mean over a hole needs no interpolation
-    height, width = grid.image.shape[:2]
-
     def colours(where):
-        uv = grid.uv[where]
-        columns = np.clip(np.rint(uv[:, 0] * width - 0.5), 0, width - 1).astype(np.int64)
-        rows = np.clip(np.rint(uv[:, 1] * height - 0.5), 0, height - 1).astype(np.int64)
-        return grid.image[rows, columns].reshape(len(uv), -1).astype(np.float64)
+        columns, rows = (np.rint(c).astype(np.int64) for c in pixel_coordinates(grid.image, grid.uv[where]))
+        return grid.image[rows, columns].reshape(len(rows), -1).astype(np.float64)
 
     skin = colours(ring).mean(axis=0)
     return bool(np.linalg.norm(colours(hole).mean(axis=0) - skin) < DROPOUT_COLOUR_SHARE * np.linalg.norm(skin))

@@ -34,7 +34,7 @@ import numpy as np
 
 from ..geometry import FrameTransform
 from .io import read_npz
-from .landmarks import LANDMARK_NAMES, MIRROR_LANDMARK, as_landmarks
+from .landmarks import LANDMARK_NAMES, MIRROR_PAIRS, as_landmarks
 
 __all__ = [
     "ScanPose",
@@ -73,8 +73,6 @@ IMPLAUSIBLE_REFUSED_RESIDUAL = 0.6
 # image, left-right swapped labels at least 2.1 times worse.
 _MIRROR_RATIO = 1.0
 
-# Each left landmark with its right partner, (left, right) by index.
-_PAIRS = tuple((i, j) for i, j in enumerate(MIRROR_LANDMARK) if i != j and "left" in LANDMARK_NAMES[i].lower())
 
 # The fit needs four landmarks: three fix a rotation, the fourth tells a mirror image.
 _MIN_POSE_LANDMARKS = 4
@@ -257,7 +255,7 @@ def scan_pose(landmarks) -> ScanPose | None:
     for unit in UNITS_MM:
         if _SIZE_RANGE[0] <= scale / unit <= _SIZE_RANGE[1]:
             mm_per_unit = unit
-    swapped = tuple((LANDMARK_NAMES[i], LANDMARK_NAMES[j]) for i, j in _PAIRS
+    swapped = tuple((LANDMARK_NAMES[i], LANDMARK_NAMES[j]) for i, j in MIRROR_PAIRS
                     if both[i] and both[j] and fitted[i, 0] < fitted[j, 0])
     return ScanPose(nearest, mm_per_unit, rotation, float(scale), residual, mirrored_residual, residuals, swapped)
 
