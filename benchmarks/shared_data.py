@@ -17,3 +17,13 @@ def shared_dir() -> Path | None:
         if (path / "data" / "ict-facekit" / "face_model.npz").is_file() and (path / "tools" / "make_scans.py").is_file():
             return path
     return None
+
+
+def load_module(path: Path, name: str):
+    """A shared tool (make_scans.py, score_transfer.py) imported from its file."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

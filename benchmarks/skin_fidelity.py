@@ -41,7 +41,8 @@ from tpscore import physics
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from fidelity import AU_CODES, ensure_scans, load_module, parse_subjects, scan_path, shared_dir  # noqa: E402
+from fidelity import AU_CODES, ensure_scans, parse_subjects, scan_path  # noqa: E402
+from shared_data import load_module, shared_dir  # noqa: E402
 
 AUS = ("1", "2", "4", "12", "14", "15", "17", "20")
 #: The elastic model's muscles for each AU (tpscore/data/elastic_muscles.json). Its set
