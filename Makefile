@@ -73,12 +73,13 @@ bench: install
 	$(PY) benchmarks/transfer_scale.py
 	$(PY) benchmarks/batch_throughput.py
 
-# The physical skin's stability sweep and fidelity benchmark (about an hour and a half
-# on a shared two-core machine; the fidelity part skips without ../shared):
+# The physical skin's stability sweep, fidelity benchmark and smile strength (about an
+# hour and a half on a shared two-core machine; the last two skip without ../shared):
 # bench-output/skin_*.md, recorded in benchmarks/SKIN.md.
 bench-skin: install
 	$(PY) benchmarks/skin_stability.py
 	$(PY) benchmarks/skin_fidelity.py $(SKIN_FIDELITY_ARGS)
+	$(PY) benchmarks/skin_smile.py
 
 # The kernels built with AddressSanitizer + UndefinedBehaviorSanitizer into an environment
 # of their own, and the kernel tests run under them (the kernels' own tests, the rows of

@@ -2,10 +2,13 @@
 their answers are known."""
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 
 from tpscore.face.landmarks import N_LANDMARKS
 from tpscore.physics import Head, SkinLinearMuscle, SkinSphincterMuscle, SurfacePoint
+from tpscore.physics.linearised import prism_volumes
 from tpscore.physics.system import SkinArrays, rim_edges
 from tpscore.spatial import MeshSurface
 
@@ -92,4 +95,18 @@ def random_arrays(seed: int = 0, n: int = 7) -> SkinArrays:
         particle_foot=np.argmin(np.linalg.norm(positions[:, None, :2] - skull[None, :, :2], axis=2), axis=1),
         contact_stiffness=np.full(n, 40.0), contact_damping=np.full(n, 0.5), contact_margin=0.5,
         jaw_pivot=np.array([0.0, 5.0, -20.0]), jaw_axis=np.array([1.0, 0.0, 0.0]),
+        **_random_prisms(positions, rng),
     ).validated()
+
+
+def _random_prisms(positions, rng) -> dict:
+    """Two prisms over the chain's particles, each corner order chosen so that its
+    volume at the anchors' positions is positive, with rest volumes a little off it (a
+    pressure at rest)."""
+    n = len(positions)
+    particles = np.array([np.arange(6), np.arange(1, 7) % n])
+    volume, _ = prism_volumes(SimpleNamespace(prism_particles=particles), positions)
+    particles[volume < 0] = particles[volume < 0][:, [3, 4, 5, 0, 1, 2]]
+    volume, _ = prism_volumes(SimpleNamespace(prism_particles=particles), positions)
+    return dict(prism_particles=particles, prism_rest_volume=np.abs(volume) * rng.uniform(0.8, 1.2, 2) + 0.5,
+                prism_stiffness=rng.uniform(0.5, 2.0, 2))

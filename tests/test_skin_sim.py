@@ -10,6 +10,7 @@ import pytest
 
 import tpscore
 from tpscore.physics import SimulationOptions, SkinMaterial, SkinModel, load_template
+from tpscore.physics.linearised import prism_volumes
 from tpscore.physics.system import INTEGRATORS, SkinArrays
 from tpscore.reference import skin as reference
 from tpscore.sparse import SparseCholesky
@@ -320,3 +321,69 @@ def test_a_sphincter_draws_its_ring_toward_the_epicentre_within_its_plane():
                             np.array([1.0]), 0.0)[2 * n:]
     assert np.abs(pull[:, 2]).max() < 1e-9 * np.abs(pull).max()
     assert np.abs(pull).max() > 0
+
+
+def test_prism_forces_are_the_volume_energys_gradient():
+    # Only the prisms: their forces against central differences of their energy.
+    arrays = random_arrays()
+    prisms_only = replace(arrays, spring_stiffness=np.zeros_like(arrays.spring_stiffness),
+                          spring_stiffness_high=np.zeros_like(arrays.spring_stiffness),
+                          spring_damping=np.zeros_like(arrays.spring_damping),
+                          anchor_stiffness=np.zeros_like(arrays.anchor_stiffness),
+                          particle_foot=np.full(arrays.particles, -1), drag=0.0).validated()
+    core = prisms_only.core()
+    rng = np.random.default_rng(5)
+    x = arrays.anchor_target + rng.normal(scale=0.4, size=arrays.anchor_target.shape)
+    relaxed = np.zeros(arrays.muscles)
+    force = core.forces(x, np.zeros_like(x), prisms_only.particle_foot, relaxed, 0.0)
+    assert np.abs(force).max() > 1.0  # the prisms are strained
+    h = 1e-5
+    numeric = np.zeros_like(x)
+    for i in range(len(x)):
+        for d in range(3):
+            up, down = x.copy(), x.copy()
+            up[i, d] += h
+            down[i, d] -= h
+            numeric[i, d] = -(core.potential_energy(up, relaxed, 0.0) - core.potential_energy(down, relaxed, 0.0)) / (2 * h)
+    assert np.abs(force - numeric).max() < 1e-6 * np.abs(force).max()
+    # a rigid motion keeps every volume: no force
+    turn = reference.jaw_rotation(np.array([0.0, 0.6, 0.8]), 0.7)
+    moved = x @ turn.T + np.array([3.0, -1.0, 2.0])
+    rigid = reference.forces(prisms_only, moved, np.zeros_like(x), relaxed, 0.0)
+    assert np.allclose(np.linalg.norm(rigid, axis=1), np.linalg.norm(force, axis=1), rtol=1e-9, atol=1e-9)
+
+
+def test_squeezed_tissue_keeps_its_volume_and_thickens():
+    # A ring muscle squeezes a flat patch toward its centre. Without the prisms' volume
+    # term the squeezed tissue loses volume; with it the tissue keeps most of it, and
+    # the squeezed middle thickens more.
+    head = flat_head(size=11, muscles=[sphincter(centre=(0.0, 0.0, 0.0), force=0.5)])
+    n = len(head.vertices)
+    prisms = SkinModel(head, SkinMaterial(bulk_ratio=1.0)).layers.arrays  # the same prisms for both
+    results = {}
+    for bulk in (0.0, 1.0):
+        model = SkinModel(head, SkinMaterial(bulk_ratio=bulk))
+        result = model.simulate(np.array([1.0]))
+        assert result.settled and result.scale == 1.0
+        rest = model.layers.rest
+        volume_change = prism_volumes(prisms, result.layers)[0] / prism_volumes(prisms, rest)[0] - 1
+        middle = np.hypot(rest[:n, 0] / 6.0, rest[:n, 1] / 4.0) < 1.0  # inside the ring
+        thickening = ((result.layers[:n, 2] - result.layers[2 * n:, 2]) / (rest[:n, 2] - rest[2 * n:, 2]))[middle]
+        results[bulk] = (np.abs(volume_change).max(), thickening.mean())
+    assert results[0.0][0] > 0.2  # the squeeze is strong enough to lose a fifth
+    assert results[1.0][0] < 0.5 * results[0.0][0]
+    assert results[1.0][1] - 1 > 1.5 * (results[0.0][1] - 1) > 0
+
+
+def test_prism_validation_names_the_field():
+    arrays = random_arrays()
+    twice = arrays.prism_particles.copy()
+    twice[0, 5] = twice[0, 0]
+    with pytest.raises(ValueError, match="prism_particles: prism 0 uses a particle twice"):
+        replace(arrays, prism_particles=twice).validated()
+    with pytest.raises(ValueError, match="prism_rest_volume"):
+        replace(arrays, prism_rest_volume=-arrays.prism_rest_volume).validated()
+    with pytest.raises(ValueError, match="prism_particles"):
+        replace(arrays, prism_particles=arrays.prism_particles[:, :5]).validated()
+    with pytest.raises(ValueError, match="prism_stiffness"):
+        replace(arrays, prism_stiffness=-arrays.prism_stiffness).validated()

@@ -22,6 +22,7 @@ using tpscore::Faces;
 using tpscore::IndexVector;
 using tpscore::MatrixX;
 using tpscore::Points;
+using tpscore::Prisms;
 using tpscore::SkinControls;
 using tpscore::SkinState;
 using tpscore::SkinSystem;

@@ -82,6 +82,38 @@ inline double smoothstep(double s) {
 
 }  // namespace
 
+namespace {
+
+// A prism's volume and its gradient with respect to its six corners (rows): three
+// tetrahedra (a b c A), (b c A B), (c A B C) of the corners a b c over A B C.
+struct PrismVolume {
+    double volume = 0.0;
+    Eigen::Matrix<double, 6, 3> gradient = Eigen::Matrix<double, 6, 3>::Zero();
+};
+
+inline void add_tetrahedron(const Vec3 (&x)[6], int i0, int i1, int i2, int i3, PrismVolume& out) {
+    const Vec3 e1 = x[i1] - x[i0], e2 = x[i2] - x[i0], e3 = x[i3] - x[i0];
+    const Vec3 g1 = e2.cross(e3) / 6.0, g2 = e3.cross(e1) / 6.0, g3 = e1.cross(e2) / 6.0;
+    out.volume += e1.dot(g1);
+    out.gradient.row(i1) += g1.transpose();
+    out.gradient.row(i2) += g2.transpose();
+    out.gradient.row(i3) += g3.transpose();
+    out.gradient.row(i0) -= (g1 + g2 + g3).transpose();
+}
+
+template <class P>
+inline PrismVolume prism_volume(const SkinSystemData& d, const P& positions, std::int64_t prism) {
+    Vec3 x[6];
+    for (int c = 0; c < 6; ++c) x[c] = positions.row(d.prism_particles(prism, c)).transpose();
+    PrismVolume out;
+    add_tetrahedron(x, 0, 1, 2, 3, out);
+    add_tetrahedron(x, 1, 2, 3, 4, out);
+    add_tetrahedron(x, 2, 3, 4, 5, out);
+    return out;
+}
+
+}  // namespace
+
 JawMotion::JawMotion(const Eigen::Vector3d& pivot_point, const Eigen::Vector3d& axis,
                      double angle)
     : rotation(Eigen::AngleAxisd(angle, axis).toRotationMatrix()), pivot(pivot_point) {}
@@ -205,6 +237,17 @@ SkinSystem::SkinSystem(SkinSystemData data) : data_(std::move(data)) {
         }
     }
 
+    const std::int64_t prisms = static_cast<std::int64_t>(data_.prism_particles.rows());
+    prism_offsets_.assign(static_cast<std::size_t>(n) + 1, 0);
+    for (std::int64_t q = 0; q < prisms; ++q)
+        for (int c = 0; c < 6; ++c) ++prism_offsets_[static_cast<std::size_t>(data_.prism_particles(q, c)) + 1];
+    for (std::int64_t i = 0; i < n; ++i) prism_offsets_[i + 1] += prism_offsets_[i];
+    prism_corner_.resize(static_cast<std::size_t>(6 * prisms));
+    fill.assign(prism_offsets_.begin(), prism_offsets_.end() - 1);
+    for (std::int64_t q = 0; q < prisms; ++q)
+        for (int c = 0; c < 6; ++c)
+            prism_corner_[static_cast<std::size_t>(fill[data_.prism_particles(q, c)]++)] = 6 * q + c;
+
     data_.rest_stiffness = VectorX::Zero(n);
     for (std::int64_t s = 0; s < springs; ++s) {
         data_.rest_stiffness[data_.spring_first[s]] += data_.spring_stiffness[s];
@@ -212,6 +255,8 @@ SkinSystem::SkinSystem(SkinSystemData data) : data_(std::move(data)) {
     }
     for (std::int64_t a = 0; a < anchors; ++a)
         data_.rest_stiffness[data_.anchor_particle[a]] += data_.anchor_stiffness[a];
+    // (The prisms' volume stiffness is left out: the system does not know the rest
+    // positions its gradients need, and a smaller scale only makes the test stricter.)
     for (std::int64_t i = 0; i < n; ++i)
         if (!(data_.rest_stiffness[i] > 0.0)) data_.rest_stiffness[i] = 1.0;  // a free particle
 
@@ -245,6 +290,13 @@ void SkinSystem::build_pattern() {
         const std::int64_t a = data_.spring_first[s], b = data_.spring_second[s];
         higher[static_cast<std::size_t>(std::min(a, b))].push_back(std::max(a, b));
     }
+    const std::int64_t prisms = static_cast<std::int64_t>(data_.prism_particles.rows());
+    for (std::int64_t q = 0; q < prisms; ++q)
+        for (int c = 0; c < 6; ++c)
+            for (int r = c + 1; r < 6; ++r) {
+                const std::int64_t a = data_.prism_particles(q, c), b = data_.prism_particles(q, r);
+                higher[static_cast<std::size_t>(std::min(a, b))].push_back(std::max(a, b));
+            }
     for (auto& list : higher) {
         std::sort(list.begin(), list.end());
         list.erase(std::unique(list.begin(), list.end()), list.end());
@@ -271,6 +323,16 @@ void SkinSystem::build_pattern() {
         spring_block_[s] =
             std::lower_bound(list.begin(), list.end(), std::max(a, b)) - list.begin();
     }
+    prism_block_.assign(static_cast<std::size_t>(36 * prisms), -1);
+    for (std::int64_t q = 0; q < prisms; ++q)
+        for (int c = 0; c < 6; ++c)
+            for (int r = 0; r < 6; ++r) {
+                const std::int64_t column = data_.prism_particles(q, c), other = data_.prism_particles(q, r);
+                if (other <= column) continue;
+                const auto& list = higher[static_cast<std::size_t>(column)];
+                prism_block_[static_cast<std::size_t>(36 * q + 6 * c + r)] =
+                    std::lower_bound(list.begin(), list.end(), other) - list.begin();
+            }
     // The ordering and symbolic analysis happen on the first implicit step: a system
     // that only ever steps semi-implicitly never pays for them.
 }
@@ -324,12 +386,25 @@ void SkinSystem::accumulate_forces(const SkinState& state, const SkinControls& c
             spring_force.row(k) = ((s.force + damping) * s.direction).transpose();
         }
     });
+    // Each prism's volume force on its six corners, gathered the same way.
+    const std::int64_t prisms = static_cast<std::int64_t>(d.prism_particles.rows());
+    Points corner_force(6 * prisms, 3);
+    parallel_for(static_cast<std::size_t>(prisms), kMinChunk, [&](std::size_t begin, std::size_t end) {
+        for (std::size_t q = begin; q < end; ++q) {
+            const std::int64_t k = static_cast<std::int64_t>(q);
+            const PrismVolume prism = prism_volume(d, state.positions, k);
+            const double pressure = -d.prism_stiffness[k] * (prism.volume - d.prism_rest_volume[k]);
+            corner_force.middleRows<6>(6 * k) = pressure * prism.gradient;
+        }
+    });
     parallel_for(static_cast<std::size_t>(n), kMinChunk, [&](std::size_t begin, std::size_t end) {
         for (std::size_t p = begin; p < end; ++p) {
             const std::int64_t i = static_cast<std::int64_t>(p);
             const Vec3 x = row(state.positions, i);
             const Vec3 v = row(state.velocities, i);
             Vec3 total = -d.drag * d.masses[i] * v;
+            for (std::int64_t e = prism_offsets_[p]; e < prism_offsets_[p + 1]; ++e)
+                total += row(corner_force, prism_corner_[static_cast<std::size_t>(e)]);
             for (std::int64_t e = spring_offsets_[p]; e < spring_offsets_[p + 1]; ++e) {
                 const Incidence& inc = spring_incidence_[static_cast<std::size_t>(e)];
                 const Vec3 f = row(spring_force, inc.spring);
@@ -399,6 +474,10 @@ double SkinSystem::potential_energy(const PointsRef& positions,
         const Vec3 target = jaw.apply(row(d.anchor_target, a), d.anchor_bone[a]);
         energy += 0.5 * d.anchor_stiffness[a] *
                   (row(positions, d.anchor_particle[a]) - target).squaredNorm();
+    }
+    for (Eigen::Index q = 0; q < d.prism_particles.rows(); ++q) {
+        const double change = prism_volume(d, positions, q).volume - d.prism_rest_volume[q];
+        energy += 0.5 * d.prism_stiffness[q] * change * change;
     }
     return energy;
 }
@@ -535,6 +614,20 @@ void SkinSystem::assemble(const SkinState& state, const SkinControls& controls, 
     const double h = dt, h2 = dt * dt;
     kv.resize(n, 3);
     const SkullGeometry skull = skull_at(controls);
+    // Each prism's volume gradient g (6 x 3) and g . v: its stiffness is k g g^T.
+    const std::int64_t prisms = static_cast<std::int64_t>(d.prism_particles.rows());
+    Points gradient(6 * prisms, 3);
+    VectorX rate(prisms);
+    parallel_for(static_cast<std::size_t>(prisms), kMinChunk, [&](std::size_t begin, std::size_t end) {
+        for (std::size_t q = begin; q < end; ++q) {
+            const std::int64_t k = static_cast<std::int64_t>(q);
+            gradient.middleRows<6>(6 * k) = prism_volume(d, state.positions, k).gradient;
+            double dv = 0.0;
+            for (int c = 0; c < 6; ++c)
+                dv += gradient.row(6 * k + c).dot(state.velocities.row(d.prism_particles(k, c)));
+            rate[k] = dv;
+        }
+    });
     parallel_for(static_cast<std::size_t>(n), kMinChunk, [&](std::size_t begin, std::size_t end) {
         for (std::size_t p = begin; p < end; ++p) {
             const std::int64_t j = static_cast<std::int64_t>(p);
@@ -557,6 +650,24 @@ void SkinSystem::assemble(const SkinState& state, const SkinControls& controls, 
                     for (int c = 0; c < 3; ++c) {
                         const std::int64_t at = pattern_indptr_[3 * j + c] + (3 - c) + 3 * slot;
                         for (int r = 0; r < 3; ++r) values[at + r] -= block(r, c);
+                    }
+                }
+            }
+            for (std::int64_t e = prism_offsets_[p]; e < prism_offsets_[p + 1]; ++e) {
+                const std::int64_t entry = prism_corner_[static_cast<std::size_t>(e)];
+                const std::int64_t q = entry / 6;
+                const int c = static_cast<int>(entry % 6);
+                const double k = d.prism_stiffness[q];
+                const Vec3 own = row(gradient, entry);
+                stiffness_times_v += k * rate[q] * own;
+                diagonal += h2 * k * own * own.transpose();
+                for (int r = 0; r < 6; ++r) {
+                    const std::int64_t slot = prism_block_[static_cast<std::size_t>(36 * q + 6 * c + r)];
+                    if (slot < 0) continue;
+                    const Mat3 block = h2 * k * row(gradient, 6 * q + r) * own.transpose();
+                    for (int cc = 0; cc < 3; ++cc) {
+                        const std::int64_t at = pattern_indptr_[3 * j + cc] + (3 - cc) + 3 * slot;
+                        for (int rr = 0; rr < 3; ++rr) values[at + rr] += block(rr, cc);
                     }
                 }
             }

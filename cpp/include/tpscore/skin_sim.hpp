@@ -11,6 +11,10 @@
 // - muscles: linear (toward an attachment point) or sphincter (toward an epicentre,
 //   in the ellipse's plane), each pulling a fixed set of particles with fixed weights,
 //   the pull fading to zero within 1 mm of the attachment (or the sphincter's axis);
+// - volume: each prism of tissue between two layers (a skin triangle over the same
+//   triangle below) keeps its volume, with energy k (V - V0)^2 / 2 for its volume V
+//   (three tetrahedra); tissue squeezed in one direction bulges in the others, as
+//   nearly incompressible soft tissue does, instead of folding in place;
 // - drag: a force -drag * m * v on every particle, which settles slow modes;
 // - skull contact: with h the signed distance of a particle to the skull (to the
 //   closest point of the triangles near its nearest skull vertex; N the unit
@@ -41,12 +45,15 @@ namespace tpscore {
 enum SkinBone : std::int64_t { kSkull = 0, kMandible = 1 };
 /// Muscle kinds.
 enum SkinMuscleKind : std::int64_t { kLinearMuscle = 0, kSphincterMuscle = 1 };
+/// A prism of tissue: three particles of a triangle over the same triangle's three below.
+using Prisms = Eigen::Matrix<std::int64_t, Eigen::Dynamic, 6, Eigen::RowMajor>;
 /// Integrators.
 /// - symplectic: semi-implicit Euler, v += dt f / m, x += dt v; stable below a step set
 ///   by the stiffest spring (the caller picks it).
 /// - implicit: linearised backward Euler (Baraff and Witkin, "Large steps in cloth
 ///   simulation", 1998): each step solves (M + dt D + dt^2 K) dv = dt (f - dt K v)
-///   with K = -df/dx and D = -df/dv at the current state, assembled into one sparsity
+///   with K = -df/dx and D = -df/dv at the current state (the prisms' volume term by
+///   its Gauss-Newton part k g g^T, g the volume's gradient), assembled into one sparsity
 ///   pattern (analysed once) and factorised by tpscore::PatternCholesky. Stable at
 ///   large steps; each step costs a sparse factorisation.
 enum class SkinIntegrator : int { symplectic = 0, implicit = 1 };
@@ -55,7 +62,8 @@ enum class SkinIntegrator : int { symplectic = 0, implicit = 1 };
 /// order the binding takes them. SkinSystemData declares them and the binding
 /// (bind_skin_sim.cpp) takes and copies them by expanding this list; Python lists
 /// them in tpscore.physics.system.SKIN_FIELDS.
-/// Shapes: n particles, s springs, a anchors, k muscles, v skull vertices, f triangles.
+/// Shapes: n particles, s springs, a anchors, k muscles, v skull vertices, f triangles,
+/// p prisms.
 #define TPSCORE_SKIN_FIELDS(X)                                                                     \
     X(VectorX, masses)                /* (n,) */                                                   \
     X(IndexVector, spring_first)      /* (s,) particle indices, first != second */                 \
@@ -93,7 +101,10 @@ enum class SkinIntegrator : int { symplectic = 0, implicit = 1 };
     X(VectorX, contact_damping)       /* (n,) c_c of the penalty */                                \
     X(VectorX, contact_margin)        /* (n,) height over the skull where the penalty starts */    \
     X(Eigen::Vector3d, jaw_pivot)     /* a point on the jaw's axis */                              \
-    X(Eigen::Vector3d, jaw_axis)      /* unit axis (the head's x) */
+    X(Eigen::Vector3d, jaw_axis)      /* unit axis (the head's x) */                               \
+    X(Prisms, prism_particles)        /* (p, 6) top a, b, c, then the three below (distinct) */    \
+    X(VectorX, prism_rest_volume)     /* (p,) signed volume at rest (> 0) */                       \
+    X(VectorX, prism_stiffness)       /* (p,) k of the energy k (V - V0)^2 / 2 */
 
 /// Everything that defines a skin system; all arrays are copied at construction.
 /// Preconditions (checked by the Python layer): sizes consistent, indices in range,
@@ -193,7 +204,7 @@ public:
     /// Net force (n, 3) on every particle.
     Points forces(const SkinState& state, const SkinControls& controls) const;
 
-    /// Elastic energy of the springs and anchors (muscles and damping excluded).
+    /// Elastic energy of the springs, anchors and prisms (muscles and damping excluded).
     double potential_energy(const PointsRef& positions, const SkinControls& controls) const;
     /// sum m |v|^2 / 2.
     double kinetic_energy(const PointsRef& velocities) const;
@@ -238,6 +249,8 @@ private:
     std::vector<std::int64_t> muscle_offsets_;
     std::vector<std::int64_t> muscle_of_entry_;
     std::vector<double> weight_of_entry_;
+    std::vector<std::int64_t> prism_offsets_;
+    std::vector<std::int64_t> prism_corner_;  // prism * 6 + corner, per particle
 
     // The implicit system's pattern: lower triangle of the (3n x 3n) matrix, block
     // column by block column; for each particle, the position of its diagonal block's
@@ -245,6 +258,9 @@ private:
     // position of the off-diagonal block.
     std::vector<std::int64_t> pattern_indptr_, pattern_indices_;
     std::vector<std::int64_t> spring_block_;  // (s,) slot of block (higher, lower) in column lower
+    // (p * 36): for corners (c, r) of a prism, the slot of block (corner r, corner c) in
+    // corner c's column when r's particle is the higher one, else -1.
+    std::vector<std::int64_t> prism_block_;
     std::unique_ptr<PatternCholesky> factor_;  // the implicit step's, refactorised every step
     std::vector<double> skull_rise_;   // (v,) how far its listed triangles rise over its plane
     double max_margin_ = 0.0;          // the largest contact margin

@@ -18,6 +18,13 @@ Springs, all biphasic and damped:
 - *anchors*: each hypodermal particle is tied to its rest position by the loose tissue
   over the bone; the mandible carries the anchors of its vertices.
 
+Volume: each skin triangle with the same triangle in the layer below bounds a prism of
+tissue (two per triangle: the dermal and the hypodermal slab), which resists a change
+of its volume V with energy K (V - V0)^2 / (2 V0), K the slab's bulk modulus
+(``bulk_ratio`` times its Young's modulus). Soft tissue is nearly incompressible:
+squeezed in its plane, as beside a smiling mouth's corner, it thickens and the skin
+bulges out, where springs alone let it fold in place.
+
 The hypodermal layer rests on the skull: its particles meet it (a damped penalty
 within ``contact_margin_mm``, and a projection back onto the skull of any that get
 inside). The layers above reach the skull only if a column inverts, which the
@@ -35,12 +42,14 @@ Units: mm, g, s; 1 kPa = 1e3 g / (mm s^2); forces in g mm / s^2 (1 N = 1e6).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from types import SimpleNamespace
 
 import numpy as np
 import scipy.sparse as sp
 
 from .._validation import check_options
 from ..mesh import vertex_normals, voronoi_areas
+from .linearised import prism_volumes
 from .muscles import SkinLinearMuscle, muscle_weights
 from .system import LINEAR, MANDIBLE, SKULL, SPHINCTER, SkinArrays, rim_edges
 
@@ -92,6 +101,11 @@ class SkinMaterial:
     contact_stiffness : float
         The penalty's stiffness as a multiple of the particle's own stiffness at rest
         (the sum of its springs' and anchor's slopes).
+    bulk_ratio : float
+        Each slab's bulk modulus as a multiple of its Young's modulus: how strongly a
+        prism of tissue keeps its volume (0: not at all). Incompressible tissue has a
+        bulk modulus far above its Young's; the value is kept where the explicit
+        integrator's stable step does not shrink much.
     """
 
     skin_modulus_kpa: float = 20.0
@@ -109,13 +123,14 @@ class SkinMaterial:
     flexion: float = 3.0
     contact_margin_mm: float = 0.5
     contact_stiffness: float = 2.0
+    bulk_ratio: float = 1.0
 
     def __post_init__(self):
         check_options(self, positive=("skin_modulus_kpa", "skin_thickness_mm", "dermal_modulus_kpa",
                                       "hypodermal_modulus_kpa", "anchor_modulus_kpa", "dermal_depth",
                                       "hypodermal_depth", "stiffening", "density_g_mm3"),
                       non_negative=("knee_strain", "damping_ratio", "drag", "flexion", "contact_margin_mm",
-                                    "contact_stiffness"))
+                                    "contact_stiffness", "bulk_ratio"))
         if not 0 < self.dermal_depth < self.hypodermal_depth < 1:
             raise ValueError("SkinMaterial: need 0 < dermal_depth < hypodermal_depth < 1, got "
                              f"{self.dermal_depth} and {self.hypodermal_depth}")
@@ -219,7 +234,7 @@ def build_layers(head, material: SkinMaterial = SkinMaterial()) -> SkinLayers:
     bones = np.where(head.mandible, MANDIBLE, SKULL).astype(np.int64)
     hypodermis = columns.rest[2 * n:]
 
-    lips = head.region_mask([r for r in ("upper_lip", "lower_lip") if r in head.region_names])
+    lips = head.region_mask([r for r in ("upper_lip", "lower_lip", "nose") if r in head.region_names])
     own = np.zeros(3 * n)
     np.add.at(own, first, stiffness)
     np.add.at(own, second, stiffness)
@@ -244,6 +259,7 @@ def build_layers(head, material: SkinMaterial = SkinMaterial()) -> SkinLayers:
         contact_damping=2.0 * material.damping_ratio * np.sqrt(material.contact_stiffness * own * masses),
         contact_margin=material.contact_margin_mm,
         jaw_pivot=head.jaw_pivot, jaw_axis=head.jaw_axis,
+        **_prism_arrays(head, columns.rest, material),
     )
     arrays = _with_contact_margins(arrays, columns.rest, material)
     return SkinLayers(rest=columns.rest, vertices=n, arrays=arrays, muscle_names=head.muscle_names)
@@ -344,6 +360,32 @@ def _springs(head, columns: _Columns, material: SkinMaterial):
             stiffness.append(k)
     return (np.concatenate(first).astype(np.int64), np.concatenate(second).astype(np.int64),
             np.concatenate(stiffness))
+
+
+def _prism_arrays(head, rest: np.ndarray, material: SkinMaterial) -> dict:
+    """The prisms' fields of SkinArrays: each skin triangle over the same triangle one
+    layer down, in both slabs, with k = K / V0 (K the slab's bulk modulus); none when
+    ``bulk_ratio`` is 0."""
+    n, faces = len(head.vertices), np.asarray(head.faces, dtype=np.int64)
+    if material.bulk_ratio == 0 or len(faces) == 0:
+        return dict(prism_particles=np.zeros((0, 6), dtype=np.int64), prism_rest_volume=np.zeros(0),
+                    prism_stiffness=np.zeros(0))
+    particles, stiffness = [], []
+    for slab, modulus in enumerate((material.dermal_modulus_kpa, material.hypodermal_modulus_kpa)):
+        particles.append(np.concatenate([slab * n + faces, (slab + 1) * n + faces], axis=1))
+        stiffness.append(np.full(len(faces), KPA * material.bulk_ratio * modulus))
+    particles = np.concatenate(particles)
+    stiffness = np.concatenate(stiffness)
+    volume, _ = prism_volumes(SimpleNamespace(prism_particles=particles), rest)
+    # The skin's triangles face out and the layers lie below, which makes the tetrahedra
+    # (a b c A ...) negative: the prism read from below is positive.
+    flip = volume < 0
+    particles[flip] = particles[flip][:, [3, 4, 5, 0, 1, 2]]
+    volume, _ = prism_volumes(SimpleNamespace(prism_particles=particles), rest)
+    # a prism flattened at rest (a column of no depth) keeps nothing
+    keep = volume > 1e-9 * max(volume.max(initial=0.0), 1e-300)
+    return dict(prism_particles=particles[keep], prism_rest_volume=volume[keep],
+                prism_stiffness=stiffness[keep] / volume[keep])
 
 
 def _muscle_arrays(head, hypodermis: np.ndarray) -> dict:

@@ -1,6 +1,6 @@
-"""The skin's springs and anchors linearised about a configuration: the stiffness
-K = -df/dx and the damping D = -df/dv of the spring, anchor and drag forces, as sparse
-(3n, 3n) matrices. The simulation takes their largest eigenvalues (against the masses)
+"""The skin's springs, anchors and prisms linearised about a configuration: the
+stiffness K = -df/dx and the damping D = -df/dv of the spring, anchor, volume and drag
+forces, as sparse (3n, 3n) matrices. The simulation takes their largest eigenvalues (against the masses)
 for its stable step; the NumPy reference of the compiled step (:mod:`tpscore.reference.skin`)
 adds the skull contact's rows and assembles its implicit step from them.
 """
@@ -9,7 +9,11 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["spring_state", "spring_stiffness_matrix", "spring_damping_matrix"]
+__all__ = ["spring_state", "spring_stiffness_matrix", "spring_damping_matrix", "prism_volumes",
+           "prism_stiffness_matrix"]
+
+#: The three tetrahedra of a prism (top a b c = corners 0 1 2 over A B C = 3 4 5).
+PRISM_TETRAHEDRA = ((0, 1, 2, 3), (1, 2, 3, 4), (2, 3, 4, 5))
 
 
 def spring_state(arrays, positions):
@@ -70,3 +74,33 @@ def spring_damping_matrix(arrays, positions) -> sp.csr_matrix:
     np.add.at(diagonal, arrays.anchor_particle, arrays.anchor_damping)
     return assemble_springs(n, arrays.spring_first, arrays.spring_second,
                             arrays.spring_damping[:, None, None] * along, diagonal)
+
+
+def prism_volumes(arrays, positions):
+    """Per prism: its volume (p,) as three tetrahedra and the gradient (p, 6, 3) of the
+    volume with respect to its six corners."""
+    x = np.asarray(positions, dtype=np.float64)[arrays.prism_particles]  # (p, 6, 3)
+    volume = np.zeros(len(x))
+    gradient = np.zeros_like(x)
+    for i0, i1, i2, i3 in PRISM_TETRAHEDRA:
+        e1, e2, e3 = x[:, i1] - x[:, i0], x[:, i2] - x[:, i0], x[:, i3] - x[:, i0]
+        g1, g2, g3 = np.cross(e2, e3) / 6.0, np.cross(e3, e1) / 6.0, np.cross(e1, e2) / 6.0
+        volume += np.einsum("ij,ij->i", e1, g1)
+        gradient[:, i1] += g1
+        gradient[:, i2] += g2
+        gradient[:, i3] += g3
+        gradient[:, i0] -= g1 + g2 + g3
+    return volume, gradient
+
+
+def prism_stiffness_matrix(arrays, positions) -> sp.csr_matrix:
+    """The Gauss-Newton part k g g^T of the prisms' volume stiffness (3n, 3n), g each
+    prism's volume gradient: positive semi-definite, what the implicit step uses."""
+    n = len(arrays.masses)
+    _, gradient = prism_volumes(arrays, positions)
+    flat = gradient.reshape(len(gradient), 18)
+    blocks = arrays.prism_stiffness[:, None, None] * np.einsum("pi,pj->pij", flat, flat)
+    index = (3 * arrays.prism_particles[:, :, None] + np.arange(3)).reshape(len(gradient), 18)
+    rows = np.repeat(index, 18, axis=1).reshape(-1)
+    cols = np.tile(index, (1, 18)).reshape(-1)
+    return sp.coo_matrix((blocks.reshape(-1), (rows, cols)), shape=(3 * n, 3 * n)).tocsr()

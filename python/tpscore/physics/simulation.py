@@ -44,7 +44,7 @@ from .._validation import as_positive, check_options
 from ..mesh import face_normals
 from .head import Head
 from .layers import SkinLayers, SkinMaterial, build_layers
-from .linearised import spring_damping_matrix, spring_stiffness_matrix
+from .linearised import prism_stiffness_matrix, spring_damping_matrix, spring_stiffness_matrix
 from .system import INTEGRATORS
 
 __all__ = ["SkinModel", "SimulationOptions", "SkinSimulation", "SkinWarning", "SimulationError", "MAX_JAW_DEG"]
@@ -256,8 +256,8 @@ class SkinModel:
 
         For a mode of frequency w with damping rate r the semi-implicit Euler step is
         stable for dt < (sqrt(r^2 + 4 w^2) - r) / w^2; w^2 is taken as the largest
-        eigenvalue of M^-1 K with every spring at its stiff (beyond-the-knee) slope and
-        the contact penalty on every particle, r as that of M^-1 D, and the result
+        eigenvalue of M^-1 K with every spring at its stiff (beyond-the-knee) slope, the
+        prisms' volume stiffness and the contact penalty on every particle, r as that of M^-1 D, and the result
         times 0.9.
         """
         if self._stable_step is None:
@@ -266,7 +266,8 @@ class SkinModel:
             arrays = self._layers.arrays
             stiff = replace(arrays, spring_stiffness=arrays.spring_stiffness_high)
             # with the contact penalty everywhere: any particle may touch the skull
-            w2 = _largest_eigenvalue(spring_stiffness_matrix(stiff, self._layers.rest) + self._contact_everywhere(),
+            w2 = _largest_eigenvalue(spring_stiffness_matrix(stiff, self._layers.rest)
+                                     + prism_stiffness_matrix(arrays, self._layers.rest) + self._contact_everywhere(),
                                      arrays.masses)
             r = _largest_eigenvalue(spring_damping_matrix(arrays, self._layers.rest), arrays.masses)
             self._stable_step = _STABILITY_SAFETY * (math.sqrt(r * r + 4.0 * w2) - r) / w2

@@ -82,7 +82,7 @@ class SkinField(NamedTuple):
     with ``allow_negative``), "indptr" (int64 CSR offsets: nondecreasing from 0) or
     "scalar" (a finite float). ``shape`` holds numbers and size letters: n particles,
     s springs, a anchors, k muscles, e a muscle's entries, v skull vertices, f skull
-    triangles, t the triangles' entries, u the neighbours' entries, "k + 1" one more
+    triangles, t the triangles' entries, u the neighbours' entries, p prisms, "k + 1" one more
     than k; None is the array's own shape. A field with ``sizes`` defines that letter
     (its length; an indptr's last entry). ``reshape``: any array of the right number of
     entries will do; ``broadcast``: a number stands for every row. ``default`` is the
@@ -155,6 +155,11 @@ SKIN_FIELDS = (
        "(a number: the same for all).", nonnegative=True, default=0.0, broadcast=True),
     _F("jaw_pivot", "float", (3,), "A point on the jaw's axis."),
     _F("jaw_axis", "float", (3,), "The jaw's unit axis.", default=(1.0, 0.0, 0.0)),
+    _F("prism_particles", "index", ("p", 6), "Prisms of tissue that keep their volume: a triangle's three particles, "
+       "then the three below them (six different particles).", "n", sizes="p", reshape=True),
+    _F("prism_rest_volume", "float", ("p",), "Each prism's volume at rest, positive (three tetrahedra: a b c A, "
+       "b c A B, c A B C)."),
+    _F("prism_stiffness", "float", ("p",), "k of each prism's energy k (V - V0)^2 / 2.", nonnegative=True),
 )
 del _F
 
@@ -173,7 +178,7 @@ def _default(spec: SkinField):
         return field()
     if spec.default is EMPTY:
         dtype = np.float64 if spec.kind == "float" else np.int64
-        shape = tuple(_dimension(term, {letter: 0 for letter in "nsakevftu"}) for term in spec.shape)
+        shape = tuple(_dimension(term, {letter: 0 for letter in "nsakevftup"}) for term in spec.shape)
         return field(default_factory=lambda: np.zeros(shape, dtype=dtype))
     if isinstance(spec.default, tuple):
         return field(default_factory=lambda: np.array(spec.default))
@@ -217,7 +222,10 @@ def _check_field(spec: SkinField, value, sizes):
             raise ValueError(f"{spec.name} must be finite and >= 0, got {value!r}")
         return number
     if spec.sizes and spec.kind != "indptr":
-        flat = np.asarray(value).reshape((-1,) + tuple(spec.shape[1:]))
+        try:
+            flat = np.asarray(value).reshape((-1,) + tuple(spec.shape[1:]))
+        except ValueError:
+            raise ValueError(f"{spec.name} must have shape {spec.shape}, got {np.shape(value)}") from None
         sizes[spec.sizes] = len(flat)
         value = flat if spec.reshape else value
     shape = None if spec.shape is None else tuple(_dimension(term, sizes) for term in spec.shape)
@@ -271,6 +279,15 @@ def _check_relations(name: str, out: dict) -> None:
     elif name == "jaw_axis":
         if not np.isclose(np.linalg.norm(out["jaw_axis"]), 1.0, atol=1e-9):
             raise ValueError("jaw_axis must be a unit vector")
+    elif name == "prism_particles":
+        corners = np.sort(out["prism_particles"], axis=1)
+        if np.any(corners[:, 1:] == corners[:, :-1]):
+            bad = int(np.flatnonzero(np.any(corners[:, 1:] == corners[:, :-1], axis=1))[0])
+            raise ValueError(f"prism_particles: prism {bad} uses a particle twice")
+    elif name == "prism_rest_volume":
+        if np.any(out["prism_rest_volume"] <= 0):
+            raise ValueError("prism_rest_volume must be > 0 (order each prism's corners so that its volume is "
+                             "positive at rest)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -279,7 +296,7 @@ class SkinArrays:
     """Everything that defines a skin system (units: mm, g, s; forces in g mm / s^2).
 
     Shapes: n particles, s springs, a anchors, k muscles, v skull vertices, f skull
-    triangles; e, t and u count the entries of the CSR lists. Every array is converted
+    triangles, p prisms; e, t and u count the entries of the CSR lists. Every array is converted
     and checked by :meth:`validated`; the compiled core assumes that was done. The
     fields are the rows of :data:`SKIN_FIELDS`.
 

@@ -13,7 +13,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..physics.linearised import spring_damping_matrix, spring_state, spring_stiffness_matrix
+from ..physics.linearised import (prism_stiffness_matrix, prism_volumes, spring_damping_matrix, spring_state,
+                                  spring_stiffness_matrix)
 from .spatial import closest_point_on_triangles
 
 __all__ = [
@@ -141,6 +142,10 @@ def forces(arrays, positions, velocities, contractions, jaw_angle: float, foot=N
     np.add.at(total, arrays.spring_first, pull)
     np.add.at(total, arrays.spring_second, -pull)
 
+    volume, gradient = prism_volumes(arrays, positions)
+    pressure = -arrays.prism_stiffness * (volume - arrays.prism_rest_volume)
+    np.add.at(total, arrays.prism_particles.reshape(-1), (pressure[:, None, None] * gradient).reshape(-1, 3))
+
     targets = bone_points(arrays, arrays.anchor_target, arrays.anchor_bone, jaw_angle)
     p = arrays.anchor_particle
     np.add.at(total, p, arrays.anchor_stiffness[:, None] * (targets - positions[p])
@@ -179,7 +184,7 @@ def forces(arrays, positions, velocities, contractions, jaw_angle: float, foot=N
 
 
 def potential_energy(arrays, positions, jaw_angle: float = 0.0) -> float:
-    """Elastic energy of the springs (biphasic law integrated) and the anchors."""
+    """Elastic energy of the springs (biphasic law integrated), the anchors and the prisms."""
     _, length, _, _ = spring_state(arrays, positions)
     extension = np.abs(length - arrays.spring_rest)
     limit = arrays.spring_knee * arrays.spring_rest
@@ -189,7 +194,9 @@ def potential_energy(arrays, positions, jaw_angle: float = 0.0) -> float:
                + 0.5 * arrays.spring_stiffness_high * beyond ** 2)
     targets = bone_points(arrays, arrays.anchor_target, arrays.anchor_bone, jaw_angle)
     anchors = 0.5 * arrays.anchor_stiffness * np.sum((positions[arrays.anchor_particle] - targets) ** 2, axis=1)
-    return float(springs.sum() + anchors.sum())
+    volume, _ = prism_volumes(arrays, positions)
+    prisms = 0.5 * arrays.prism_stiffness * (volume - arrays.prism_rest_volume) ** 2
+    return float(springs.sum() + anchors.sum() + prisms.sum())
 
 
 def kinetic_energy(arrays, velocities) -> float:
@@ -242,14 +249,16 @@ def project_contacts(arrays, positions, velocities, foot, jaw_angle: float):
 
 def stiffness_matrix(arrays, positions, *, tension_only: bool = True, foot=None,
                      jaw_angle: float = 0.0) -> sp.csr_matrix:
-    """K = -df/dx of the springs, anchors and contact penalty at `positions` (3n, 3n);
-    muscles left out (the implicit step treats them explicitly). With tension_only the
+    """K = -df/dx of the springs, anchors, prisms and contact penalty at `positions`
+    (3n, 3n); muscles left out (the implicit step treats them explicitly), the prisms'
+    volume term by its Gauss-Newton part k g g^T, as the core does. With tension_only the
     geometric term of compressed springs is dropped, as the implicit step does; the
     penalty counts where a particle is within the contact margin of the skull around
     its skull vertex `foot` (nowhere without `foot`)."""
     n = len(arrays.masses)
     positions = np.asarray(positions, dtype=np.float64)
     matrix = spring_stiffness_matrix(arrays, positions, tension_only=tension_only)
+    matrix = matrix + prism_stiffness_matrix(arrays, positions)
     rows, normal = _contact_rows(arrays, positions, foot, jaw_angle)
     if len(rows):
         matrix = matrix + _block_diagonal(n, rows, arrays.contact_stiffness[rows, None, None]
