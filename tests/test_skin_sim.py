@@ -387,3 +387,38 @@ def test_prism_validation_names_the_field():
         replace(arrays, prism_particles=arrays.prism_particles[:, :5]).validated()
     with pytest.raises(ValueError, match="prism_stiffness"):
         replace(arrays, prism_stiffness=-arrays.prism_stiffness).validated()
+
+
+def test_the_contact_direction_turns_continuously_across_a_concave_crease():
+    # A skull folded into a valley along x = 0 (z = |x| / 2): over the valley's middle the
+    # closest skull point jumps from one slope to the other. The penalty's direction is
+    # blended over the nearly-as-close triangles, so it turns continuously there (a
+    # particle held in such a crease once chattered from side to side without end);
+    # the core and the reference agree on it.
+    arrays = random_arrays()
+    skull = arrays.skull_vertices.copy()
+    skull[:, 2] = 0.5 * np.abs(skull[:, 0])
+    slope = np.column_stack([-0.5 * np.sign(skull[:, 0]), np.zeros(len(skull)), np.ones(len(skull))])
+    arrays = replace(arrays, skull_vertices=skull,
+                     skull_normals=slope / np.linalg.norm(slope, axis=1, keepdims=True)).validated()
+    middle = int(np.argmin(np.linalg.norm(skull[:, :2], axis=1)))
+    core = arrays.core()
+    normals, forces = [], []
+    for x in (-1e-4, 1e-4, 0.05):
+        positions = arrays.anchor_target.copy()
+        positions[0] = (x, 0.0, 0.3)  # 0.27 mm from each slope: inside the 0.5 mm margin
+        foot = arrays.particle_foot.copy()
+        foot[0] = middle
+        height, normal, _ = reference.locate(arrays, positions[:1], foot[:1])
+        assert 0 < height[0] < arrays.contact_margin[0]
+        normals.append(normal[0])
+        zero = np.zeros_like(positions)
+        expected = reference.forces(arrays, positions, zero, np.zeros(2), 0.0, foot)
+        got = core.forces(positions, zero, foot, np.zeros(2), 0.0)
+        assert np.abs(got - expected).max() < 1e-12 * np.abs(expected).max()
+        forces.append(got[0])
+    # each slope alone would point 27 degrees to its own side: 0.89 apart
+    assert np.linalg.norm(normals[1] - normals[0]) < 1e-3
+    assert np.linalg.norm(forces[1] - forces[0]) < 1e-3 * np.linalg.norm(forces[0])
+    # and away from the middle it leans toward the nearer slope's normal
+    assert normals[2][0] < -1e-3

@@ -33,6 +33,10 @@ constexpr double kPivotTolerance = 1e-14;
 // Length (mm) over which a muscle's pull fades to zero at its attachment (see forces).
 constexpr double kMuscleCore = 1.0;
 
+// The contact direction blends triangles up to this fraction of the largest contact
+// margin farther than the closest one (see SkinSystem::blended_normal).
+constexpr double kContactBlend = 0.5;
+
 
 // One spring seen from its first particle: unit direction toward the second, current
 // length, elastic force along the direction (positive = tension) and its slope dF/dl.
@@ -167,10 +171,8 @@ SkullContact SkinSystem::locate(const Eigen::Vector3d& x, std::int64_t foot,
         // over it, at its distance from the rim. Counting it as inside would snap tissue
         // that slid past the rim back onto the rim's edge; for a particle above the
         // bone the height stays continuous as its closest point reaches the rim.
-        const Vec3 offset = x - best.point;
         best.height = std::sqrt(best_distance);
-        best.normal = best.height > 1e-12 ? Vec3(offset / best.height)
-                                          : Vec3(row(skull.face_normals, best.face));
+        best.normal = blended_normal(x, foot, skull, best.height, best.face);
         return best;
     }
     if (best.face < 0) {
@@ -183,10 +185,55 @@ SkullContact SkinSystem::locate(const Eigen::Vector3d& x, std::int64_t foot,
     const Vec3 face_normal = row(skull.face_normals, best.face);
     const Vec3 offset = x - best.point;
     const double distance = std::sqrt(best_distance);
-    const double side = offset.dot(face_normal) >= 0.0 ? 1.0 : -1.0;
-    best.height = side * distance;
-    best.normal = distance > 1e-12 ? Vec3(side * offset / distance) : face_normal;
+    if (offset.dot(face_normal) < 0.0) {
+        // inside the skull: straight back out of the closest triangle (the projection
+        // moves the particle there)
+        best.height = -distance;
+        best.normal = distance > 1e-12 ? Vec3(-offset / distance) : face_normal;
+        return best;
+    }
+    best.height = distance;
+    best.normal = blended_normal(x, foot, skull, distance, best.face);
     return best;
+}
+
+Eigen::Vector3d SkinSystem::blended_normal(const Eigen::Vector3d& x, std::int64_t foot,
+                                           const SkullGeometry& skull, double distance,
+                                           std::int64_t face) const {
+    // The direction out of the skull, blended over the triangles whose distance is
+    // within kContactBlend of the closest one's, each weighted (1 - excess / blend)^2:
+    // in a concave crease the closest point jumps from one side to the other as a
+    // particle crosses the crease's middle, and with it the direction of the penalty;
+    // a particle held in the crease then chattered from side to side and never came
+    // to rest. Blended, the direction turns continuously, and triangles that share the
+    // closest point (an edge, a corner) give the same direction and change nothing.
+    // Only for a particle outside the skull (or beside its rim).
+    const SkinSystemData& d = data_;
+    const double blend = kContactBlend * max_margin_;
+    if (!(distance > 1e-12)) return row(skull.face_normals, face);
+    const std::int64_t bone = d.skull_bone[foot];
+    Vec3 sum = Vec3::Zero();
+    for (std::int64_t e = d.skull_face_indptr[foot]; e < d.skull_face_indptr[foot + 1]; ++e) {
+        const std::int64_t f = d.skull_vertex_faces[e];
+        const std::int64_t a = d.skull_faces(f, 0), b = d.skull_faces(f, 1), c = d.skull_faces(f, 2);
+        if (d.skull_bone[a] != bone || d.skull_bone[b] != bone || d.skull_bone[c] != bone) continue;
+        const Vec3 pa = row(skull.vertices, a), pb = row(skull.vertices, b), pc = row(skull.vertices, c);
+        const TrianglePoint t = closest_point_on_triangle(x.data(), pa.data(), pb.data(), pc.data());
+        const double own = std::sqrt(t.squared_distance);
+        const double excess = own - distance;
+        if (f != face && !(excess < blend)) continue;
+        if (!(own > 1e-12)) continue;
+        bool on_rim = false;
+        for (int k = 0; k < 3; ++k)
+            if (t.barycentric[k] == 0.0 && (d.skull_face_rim[f] >> k) & 1) on_rim = true;
+        const Vec3 offset = x - Vec3(t.point[0], t.point[1], t.point[2]);
+        // a triangle the particle lies behind (and not beside its rim) has no say
+        if (f != face && !on_rim && offset.dot(row(skull.face_normals, f)) < 0.0) continue;
+        const double w = f == face ? 1.0 : (1.0 - excess / blend) * (1.0 - excess / blend);
+        sum += w * offset / own;
+    }
+    const double length = sum.norm();
+    return length > 1e-12 ? Vec3(sum / length) : Vec3(row(skull.face_normals, face));
 }
 
 SkinSystem::SkinSystem(SkinSystemData data) : data_(std::move(data)) {

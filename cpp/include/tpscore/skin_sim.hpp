@@ -19,7 +19,9 @@
 // - skull contact: with h the signed distance of a particle to the skull (to the
 //   closest point of the triangles near its nearest skull vertex; N the unit
 //   direction out of the skull there), a damped penalty force (k_c (margin - h) -
-//   c_c v.N) N pushes it out while h < margin (per particle, below its rest height); a particle that still gets inside
+//   c_c v.N) N pushes it out while h < margin (per particle, below its rest height),
+//   N blended over the triangles nearly as close as the closest one (continuous across
+//   a concave crease, where the closest point jumps); a particle that still gets inside
 //   (h < 0) is moved back onto the skull, and its inward velocity is removed. The
 //   penalty makes a resting contact a true equilibrium of the forces; the projection
 //   guarantees that nothing ends inside the skull. Each particle meets only the
@@ -272,6 +274,10 @@ private:
                   std::vector<double>& values, Points& kv) const;
     SkullGeometry skull_at(const SkinControls& controls) const;
     SkullContact locate(const Eigen::Vector3d& x, std::int64_t foot, const SkullGeometry& skull) const;
+    /// The unit direction out of the skull at a particle whose closest triangle is
+    /// `face` at `distance`: blended over the nearly-as-close triangles.
+    Eigen::Vector3d blended_normal(const Eigen::Vector3d& x, std::int64_t foot, const SkullGeometry& skull,
+                                   double distance, std::int64_t face) const;
     Points bone_points(const Points& points, const IndexVector& bones,
                        const JawMotion& jaw) const;
     Points muscle_points(const JawMotion& jaw) const;

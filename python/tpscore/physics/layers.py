@@ -234,7 +234,7 @@ def build_layers(head, material: SkinMaterial = SkinMaterial()) -> SkinLayers:
     bones = np.where(head.mandible, MANDIBLE, SKULL).astype(np.int64)
     hypodermis = columns.rest[2 * n:]
 
-    lips = head.region_mask([r for r in ("upper_lip", "lower_lip", "nose") if r in head.region_names])
+    lips = head.region_mask([r for r in ("upper_lip", "lower_lip") if r in head.region_names])
     own = np.zeros(3 * n)
     np.add.at(own, first, stiffness)
     np.add.at(own, second, stiffness)

@@ -41,6 +41,9 @@ SKULL, MANDIBLE = 0, 1
 LINEAR, SPHINCTER = 0, 1
 #: Length (mm) over which a muscle's pull fades to zero at its attachment.
 MUSCLE_CORE = 1.0
+#: The contact direction blends triangles up to this fraction of the largest contact
+#: margin farther than the closest one.
+CONTACT_BLEND = 0.5
 
 
 def jaw_rotation(axis, angle: float) -> np.ndarray:
@@ -79,9 +82,10 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
 
     The closest point of the triangles listed near each point's skull vertex `foot` that
     lie wholly on that vertex's bone, the distance to it signed by the triangle's
-    normal, and the unit direction out of the skull; the vertex's tangent plane where
-    no such triangle exists. Where the closest point lies on the skull's rim, the skull
-    continues as the rim triangle's plane.
+    normal, and the unit direction out of the skull, blended over the triangles up to
+    CONTACT_BLEND times the largest margin farther (weights (1 - excess / blend)^2); the
+    vertex's tangent plane where no such triangle exists. Where the closest point lies
+    on the skull's rim, the particle is beside the bone, at its distance from the rim.
     """
     skull, normals, face_normals = _skull_at(arrays, jaw_angle) if geometry is None else geometry
     points = np.asarray(points, dtype=np.float64)
@@ -115,15 +119,47 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
     face_normal = face_normals[np.maximum(best_face, 0)]
     side = np.where(np.einsum("ij,ij->i", offset, face_normal) >= 0, 1.0, -1.0)
     height = side * distance
+    # the direction out of the skull, blended over the nearly-as-close triangles the
+    # particle lies in front of or beside (see the core's blended_normal); inside, the
+    # closest triangle's
+    blend = CONTACT_BLEND * max(float(np.max(arrays.contact_margin, initial=0.0)), 0.0)
+    direction_sum = np.zeros_like(points)
+    for offset_index in range(int((stop - start).max(initial=0))):
+        has = start + offset_index < stop
+        face = np.where(has, arrays.skull_vertex_faces[np.minimum(start + offset_index,
+                                                                  len(arrays.skull_vertex_faces) - 1)], 0)
+        corners = arrays.skull_faces[face]
+        has &= np.all(arrays.skull_bone[corners] == bone[:, None], axis=1) & found
+        closest, bary, d2 = closest_point_on_triangles(points, skull[corners[:, 0]], skull[corners[:, 1]],
+                                                      skull[corners[:, 2]])
+        own = np.sqrt(d2)
+        excess = own - distance
+        is_best = face == best_face
+        has &= (is_best | (excess < blend)) & (own > 1e-12)
+        rim_bits = arrays.skull_face_rim[face]
+        on_rim = np.zeros(len(points), dtype=bool)
+        for k in range(3):
+            on_rim |= (bary[:, k] == 0.0) & (((rim_bits >> k) & 1) == 1)
+        to_point = points - closest
+        # a triangle the particle lies behind (and not beside its rim) has no say
+        has &= is_best | on_rim | (np.einsum("ij,ij->i", to_point, face_normals[face]) >= 0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            weight = np.where(is_best, 1.0, (1.0 - excess / blend) ** 2 if blend > 0 else 0.0)
+            term = (weight / own)[:, None] * to_point
+        direction_sum += np.where(has[:, None], term, 0.0)
+    length = np.linalg.norm(direction_sum, axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        normal = np.where((distance > 1e-12)[:, None], side[:, None] * offset / distance[:, None], face_normal)
+        normal = np.where(((distance > 1e-12) & (length > 1e-12))[:, None], direction_sum / length[:, None],
+                          face_normal)
+        # inside the skull (not beside its rim): straight back out of the closest triangle
+        inside_normal = np.where((distance > 1e-12)[:, None], -offset / distance[:, None], face_normal)
+    inside = (side < 0) & ~best_rim
+    normal = np.where(inside[:, None], inside_normal, normal)
     plane_normal = normals[foot]
     plane_height = np.einsum("ij,ij->i", points - skull[foot], plane_normal)
     # beside the rim of the bone: outside, at the distance from the rim
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rim_normal = np.where((distance > 1e-12)[:, None], offset / distance[:, None], face_normal)
     height = np.where(found, np.where(best_rim, distance, height), plane_height)
-    normal = np.where(found[:, None], np.where(best_rim[:, None], rim_normal, normal), plane_normal)
+    normal = np.where(found[:, None], normal, plane_normal)
     point = np.where(found[:, None], best_point, points - plane_height[:, None] * plane_normal)
     return height, normal, point
 
