@@ -80,6 +80,7 @@ bench-skin: install
 	$(PY) benchmarks/skin_stability.py
 	$(PY) benchmarks/skin_fidelity.py $(SKIN_FIDELITY_ARGS)
 	$(PY) benchmarks/skin_smile.py
+	$(PY) benchmarks/skin_heldout.py
 
 # The kernels built with AddressSanitizer + UndefinedBehaviorSanitizer into an environment
 # of their own, and the kernel tests run under them (the kernels' own tests, the rows of

@@ -349,6 +349,7 @@ def test_simulate_command_fits_a_scan_and_writes_the_outputs(tmp_path, capsys):
 
 
 def test_a_fit_keeps_the_tissue_as_deep_as_the_template_and_the_skin_settles():
+    # rest, a full smile, a full frown and an open jaw on heads fitted to two generated faces
     # The fit's final snap once moved a chin's skin to 2 mm over the skull (9 mm on the
     # template) and the skin chattered without end: the skull now follows the snap.
     template = skin_template(5.0)
@@ -365,8 +366,12 @@ def test_a_fit_keeps_the_tissue_as_deep_as_the_template_and_the_skin_settles():
         rest = model.simulate(None)
         assert rest.settled and np.abs(rest.vertices - head.vertices).max() < 0.5
         corner = head.landmark_vertices[landmark_index("Left mouth corner")]
-        smile = model.simulate(head.contractions_for({"12": 0.6}))
-        assert smile.settled and (smile.vertices - head.vertices)[corner, 1] > 0.3  # the corner rises
+        smile = model.simulate(head.contractions_for({"12": 1.0}))
+        assert smile.settled and smile.scale == 1.0
+        assert (smile.vertices - head.vertices)[corner, 1] > 3.0  # the corner rises
+        brow = head.landmark_vertices[landmark_index("Inner left eyebrow")]
+        frown = model.simulate(head.contractions_for({"4": 1.0}))
+        assert frown.settled and (frown.vertices - head.vertices)[brow, 1] < -0.5  # the brow comes down
         chin = head.landmark_vertices[landmark_index("Chin middle")]
         jaw = model.simulate(None, jaw=10.0)
         assert jaw.settled and (jaw.vertices - head.vertices)[chin, 1] < -2.0  # the chin drops
