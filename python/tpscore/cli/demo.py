@@ -169,7 +169,8 @@ def run_skin_demo(out_dir="demo-output", *, quiet: bool = False) -> dict:
                                                                                "displacement (mm)"]))
         frames = [render.render_mesh(f, head.faces, camera=camera) for f in result.frames]
         animation += frames + frames[::-1]
-        say(f"skin: {title}: {result.steps} steps, settled after {result.simulated_time * 1e3:.0f} ms of "
+        state = ("settled after" if result.settled else "did not settle within")
+        say(f"skin: {title}: {result.steps} steps, {state} {result.simulated_time * 1e3:.0f} ms of "
             f"simulated time ({result.seconds:.1f} s), largest displacement {moved.max():.1f} mm; "
             f"wrote skin_{stem}.png")
     render.save_gif(out / "skin_expressions.gif", animation, fps=15)
