@@ -2,13 +2,11 @@
 their answers are known."""
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 
 from tpscore.face.landmarks import N_LANDMARKS
 from tpscore.physics import Head, SkinLinearMuscle, SkinSphincterMuscle, SurfacePoint
-from tpscore.physics.linearised import prism_volumes
+from tpscore.physics.linearised import oriented_prisms
 from tpscore.physics.system import SkinArrays, rim_edges
 from tpscore.spatial import MeshSurface
 
@@ -104,9 +102,6 @@ def _random_prisms(positions, rng) -> dict:
     volume at the anchors' positions is positive, with rest volumes a little off it (a
     pressure at rest)."""
     n = len(positions)
-    particles = np.array([np.arange(6), np.arange(1, 7) % n])
-    volume, _ = prism_volumes(SimpleNamespace(prism_particles=particles), positions)
-    particles[volume < 0] = particles[volume < 0][:, [3, 4, 5, 0, 1, 2]]
-    volume, _ = prism_volumes(SimpleNamespace(prism_particles=particles), positions)
+    particles, volume = oriented_prisms(np.array([np.arange(6), np.arange(1, 7) % n]), positions)
     return dict(prism_particles=particles, prism_rest_volume=np.abs(volume) * rng.uniform(0.8, 1.2, 2) + 0.5,
                 prism_stiffness=rng.uniform(0.5, 2.0, 2))

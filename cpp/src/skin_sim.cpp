@@ -34,7 +34,7 @@ constexpr double kPivotTolerance = 1e-14;
 constexpr double kMuscleCore = 1.0;
 
 // The contact direction blends triangles up to this fraction of the largest contact
-// margin farther than the closest one (see SkinSystem::blended_normal).
+// margin farther than the closest one (see blended_direction).
 constexpr double kContactBlend = 0.5;
 
 
@@ -118,6 +118,61 @@ inline PrismVolume prism_volume(const SkinSystemData& d, const P& positions, std
 
 }  // namespace
 
+namespace {
+
+// Items 0..items-1 grouped by the particle each belongs to (particle_of(item)), in item
+// order within each particle: CSR offsets (n + 1) and the grouped items.
+template <class ParticleOf>
+void group_by_particle(std::int64_t n, std::int64_t items, ParticleOf particle_of,
+                       std::vector<std::int64_t>& offsets, std::vector<std::int64_t>& grouped) {
+    offsets.assign(static_cast<std::size_t>(n) + 1, 0);
+    for (std::int64_t e = 0; e < items; ++e) ++offsets[static_cast<std::size_t>(particle_of(e)) + 1];
+    for (std::int64_t i = 0; i < n; ++i) offsets[i + 1] += offsets[i];
+    grouped.resize(static_cast<std::size_t>(items));
+    std::vector<std::int64_t> fill(offsets.begin(), offsets.end() - 1);
+    for (std::int64_t e = 0; e < items; ++e) grouped[static_cast<std::size_t>(fill[particle_of(e)]++)] = e;
+}
+
+// One triangle near a particle's skull vertex: the particle's closest point on it.
+struct SkullHit {
+    std::int64_t face;
+    Vec3 point;
+    double squared_distance;
+    bool on_rim;  // the closest point lies on a rim edge of the bone
+};
+
+// The direction out of the skull at a particle outside it (or beside its rim), blended
+// over the triangles whose distance is within `blend` of the closest one's (hit
+// `closest`, at `distance`), each weighted (1 - excess / blend)^2: in a concave crease
+// the closest point jumps from one side to the other as a particle crosses the
+// crease's middle, and with it the direction of the penalty; a particle held in the
+// crease then chattered from side to side and never came to rest. Blended, the
+// direction turns continuously, and triangles that share the closest point (an edge,
+// a corner) give the same direction and change nothing.
+Vec3 blended_direction(const Vec3& x, const std::vector<SkullHit>& hits, std::size_t closest,
+                       double distance, double blend, const Points& face_normals) {
+    const std::int64_t face = hits[closest].face;
+    if (!(distance > 1e-12)) return row(face_normals, face);
+    Vec3 sum = Vec3::Zero();
+    for (std::size_t h = 0; h < hits.size(); ++h) {
+        const SkullHit& hit = hits[h];
+        const double own = std::sqrt(hit.squared_distance);
+        const double excess = own - distance;
+        const bool nearest = h == closest;
+        if (!nearest && !(excess < blend)) continue;
+        if (!(own > 1e-12)) continue;
+        const Vec3 offset = x - hit.point;
+        // a triangle the particle lies behind (and not beside its rim) has no say
+        if (!nearest && !hit.on_rim && offset.dot(row(face_normals, hit.face)) < 0.0) continue;
+        const double w = nearest ? 1.0 : (1.0 - excess / blend) * (1.0 - excess / blend);
+        sum += w * offset / own;
+    }
+    const double length = sum.norm();
+    return length > 1e-12 ? Vec3(sum / length) : Vec3(row(face_normals, face));
+}
+
+}  // namespace
+
 JawMotion::JawMotion(const Eigen::Vector3d& pivot_point, const Eigen::Vector3d& axis,
                      double angle)
     : rotation(Eigen::AngleAxisd(angle, axis).toRotationMatrix()), pivot(pivot_point) {}
@@ -138,7 +193,6 @@ SkullContact SkinSystem::locate(const Eigen::Vector3d& x, std::int64_t foot,
     // seam between skull and mandible belong to neither: the open jaw pulls them apart.
     const SkinSystemData& d = data_;
     SkullContact best;
-    bool best_on_rim = false;
     // Far above the vertex's tangent plane, the triangles near it (which rise at most
     // skull_rise above it) are farther than the contact margin: no need to look closer.
     best.normal = row(skull.normals, foot);
@@ -147,44 +201,48 @@ SkullContact SkinSystem::locate(const Eigen::Vector3d& x, std::int64_t foot,
         best.point = x - best.height * best.normal;
         return best;
     }
+    // Every triangle near the vertex wholly on its bone, with the particle's closest
+    // point on it, found once: the closest one gives the height, the nearly-as-close
+    // ones the direction (blended_direction). The buffer is the calling thread's own.
+    thread_local std::vector<SkullHit> hits;
+    hits.clear();
     const std::int64_t bone = d.skull_bone[foot];
-    double best_distance = std::numeric_limits<double>::infinity();
+    std::size_t closest = 0;
     for (std::int64_t e = d.skull_face_indptr[foot]; e < d.skull_face_indptr[foot + 1]; ++e) {
         const std::int64_t f = d.skull_vertex_faces[e];
         const std::int64_t a = d.skull_faces(f, 0), b = d.skull_faces(f, 1), c = d.skull_faces(f, 2);
         if (d.skull_bone[a] != bone || d.skull_bone[b] != bone || d.skull_bone[c] != bone) continue;
         const Vec3 pa = row(skull.vertices, a), pb = row(skull.vertices, b), pc = row(skull.vertices, c);
         const TrianglePoint t = closest_point_on_triangle(x.data(), pa.data(), pb.data(), pc.data());
-        if (t.squared_distance < best_distance) {
-            best_distance = t.squared_distance;
-            best.point = Vec3(t.point[0], t.point[1], t.point[2]);
-            best.face = f;
-            // on the rim: an edge opposite a corner whose weight is zero is a rim edge
-            best_on_rim = false;
-            for (int k = 0; k < 3; ++k)
-                if (t.barycentric[k] == 0.0 && (d.skull_face_rim[f] >> k) & 1) best_on_rim = true;
-        }
+        // on the rim: an edge opposite a corner whose weight is zero is a rim edge
+        bool on_rim = false;
+        for (int k = 0; k < 3; ++k)
+            if (t.barycentric[k] == 0.0 && (d.skull_face_rim[f] >> k) & 1) on_rim = true;
+        hits.push_back({f, Vec3(t.point[0], t.point[1], t.point[2]), t.squared_distance, on_rim});
+        if (t.squared_distance < hits[closest].squared_distance) closest = hits.size() - 1;
     }
-    if (best.face >= 0 && best_on_rim) {
+    if (hits.empty()) {
+        // no triangle wholly on the bone (at the jaw's seam): the vertex's tangent plane
+        best.point = x - best.height * best.normal;
+        return best;
+    }
+    const SkullHit& nearest = hits[closest];
+    best.face = nearest.face;
+    best.point = nearest.point;
+    const double distance = std::sqrt(nearest.squared_distance);
+    const double blend = kContactBlend * max_margin_;
+    if (nearest.on_rim) {
         // The closest skull point lies on the rim of the particle's bone (the skull's
         // outline, the seam to the other bone): the particle is beside the bone, not
         // over it, at its distance from the rim. Counting it as inside would snap tissue
         // that slid past the rim back onto the rim's edge; for a particle above the
         // bone the height stays continuous as its closest point reaches the rim.
-        best.height = std::sqrt(best_distance);
-        best.normal = blended_normal(x, foot, skull, best.height, best.face);
-        return best;
-    }
-    if (best.face < 0) {
-        // no triangle wholly on the bone (at the jaw's seam): the vertex's tangent plane
-        best.normal = row(skull.normals, foot);
-        best.height = (x - row(skull.vertices, foot)).dot(best.normal);
-        best.point = x - best.height * best.normal;
+        best.height = distance;
+        best.normal = blended_direction(x, hits, closest, distance, blend, skull.face_normals);
         return best;
     }
     const Vec3 face_normal = row(skull.face_normals, best.face);
     const Vec3 offset = x - best.point;
-    const double distance = std::sqrt(best_distance);
     if (offset.dot(face_normal) < 0.0) {
         // inside the skull: straight back out of the closest triangle (the projection
         // moves the particle there)
@@ -193,47 +251,8 @@ SkullContact SkinSystem::locate(const Eigen::Vector3d& x, std::int64_t foot,
         return best;
     }
     best.height = distance;
-    best.normal = blended_normal(x, foot, skull, distance, best.face);
+    best.normal = blended_direction(x, hits, closest, distance, blend, skull.face_normals);
     return best;
-}
-
-Eigen::Vector3d SkinSystem::blended_normal(const Eigen::Vector3d& x, std::int64_t foot,
-                                           const SkullGeometry& skull, double distance,
-                                           std::int64_t face) const {
-    // The direction out of the skull, blended over the triangles whose distance is
-    // within kContactBlend of the closest one's, each weighted (1 - excess / blend)^2:
-    // in a concave crease the closest point jumps from one side to the other as a
-    // particle crosses the crease's middle, and with it the direction of the penalty;
-    // a particle held in the crease then chattered from side to side and never came
-    // to rest. Blended, the direction turns continuously, and triangles that share the
-    // closest point (an edge, a corner) give the same direction and change nothing.
-    // Only for a particle outside the skull (or beside its rim).
-    const SkinSystemData& d = data_;
-    const double blend = kContactBlend * max_margin_;
-    if (!(distance > 1e-12)) return row(skull.face_normals, face);
-    const std::int64_t bone = d.skull_bone[foot];
-    Vec3 sum = Vec3::Zero();
-    for (std::int64_t e = d.skull_face_indptr[foot]; e < d.skull_face_indptr[foot + 1]; ++e) {
-        const std::int64_t f = d.skull_vertex_faces[e];
-        const std::int64_t a = d.skull_faces(f, 0), b = d.skull_faces(f, 1), c = d.skull_faces(f, 2);
-        if (d.skull_bone[a] != bone || d.skull_bone[b] != bone || d.skull_bone[c] != bone) continue;
-        const Vec3 pa = row(skull.vertices, a), pb = row(skull.vertices, b), pc = row(skull.vertices, c);
-        const TrianglePoint t = closest_point_on_triangle(x.data(), pa.data(), pb.data(), pc.data());
-        const double own = std::sqrt(t.squared_distance);
-        const double excess = own - distance;
-        if (f != face && !(excess < blend)) continue;
-        if (!(own > 1e-12)) continue;
-        bool on_rim = false;
-        for (int k = 0; k < 3; ++k)
-            if (t.barycentric[k] == 0.0 && (d.skull_face_rim[f] >> k) & 1) on_rim = true;
-        const Vec3 offset = x - Vec3(t.point[0], t.point[1], t.point[2]);
-        // a triangle the particle lies behind (and not beside its rim) has no say
-        if (f != face && !on_rim && offset.dot(row(skull.face_normals, f)) < 0.0) continue;
-        const double w = f == face ? 1.0 : (1.0 - excess / blend) * (1.0 - excess / blend);
-        sum += w * offset / own;
-    }
-    const double length = sum.norm();
-    return length > 1e-12 ? Vec3(sum / length) : Vec3(row(skull.face_normals, face));
 }
 
 SkinSystem::SkinSystem(SkinSystemData data) : data_(std::move(data)) {
@@ -241,59 +260,40 @@ SkinSystem::SkinSystem(SkinSystemData data) : data_(std::move(data)) {
     const std::int64_t springs = static_cast<std::int64_t>(data_.spring_first.size());
     const std::int64_t anchors = static_cast<std::int64_t>(data_.anchor_particle.size());
 
-    // Per-particle incidence lists, in spring (anchor, muscle) order: a particle's
-    // forces are always summed in the same order.
-    std::vector<std::int64_t> count(static_cast<std::size_t>(n) + 1, 0);
-    for (std::int64_t s = 0; s < springs; ++s) {
-        ++count[static_cast<std::size_t>(data_.spring_first[s]) + 1];
-        ++count[static_cast<std::size_t>(data_.spring_second[s]) + 1];
-    }
-    for (std::int64_t i = 0; i < n; ++i) count[i + 1] += count[i];
-    spring_offsets_ = count;
-    spring_incidence_.resize(static_cast<std::size_t>(2 * springs));
-    std::vector<std::int64_t> fill(count.begin(), count.end() - 1);
-    for (std::int64_t s = 0; s < springs; ++s) {
-        const std::int64_t a = data_.spring_first[s], b = data_.spring_second[s];
-        spring_incidence_[static_cast<std::size_t>(fill[a]++)] = {s, b};
-        spring_incidence_[static_cast<std::size_t>(fill[b]++)] = {s, a};
+    // Per-particle incidence lists (CSR), each in its items' order: a particle's forces
+    // are always summed in the same order.
+    std::vector<std::int64_t> ends;  // spring item 2 s + side: the particle at that end
+    group_by_particle(n, 2 * springs, [&](std::int64_t e) {
+        return e % 2 == 0 ? data_.spring_first[e / 2] : data_.spring_second[e / 2];
+    }, spring_offsets_, ends);
+    spring_incidence_.resize(ends.size());
+    for (std::size_t slot = 0; slot < ends.size(); ++slot) {
+        const std::int64_t s = ends[slot] / 2;
+        spring_incidence_[slot] = {s, ends[slot] % 2 == 0 ? data_.spring_second[s] : data_.spring_first[s]};
     }
 
-    anchor_offsets_.assign(static_cast<std::size_t>(n) + 1, 0);
-    for (std::int64_t a = 0; a < anchors; ++a)
-        ++anchor_offsets_[static_cast<std::size_t>(data_.anchor_particle[a]) + 1];
-    for (std::int64_t i = 0; i < n; ++i) anchor_offsets_[i + 1] += anchor_offsets_[i];
-    anchor_index_.resize(static_cast<std::size_t>(anchors));
-    fill.assign(anchor_offsets_.begin(), anchor_offsets_.end() - 1);
-    for (std::int64_t a = 0; a < anchors; ++a)
-        anchor_index_[static_cast<std::size_t>(fill[data_.anchor_particle[a]]++)] = a;
+    group_by_particle(n, anchors, [&](std::int64_t a) { return data_.anchor_particle[a]; }, anchor_offsets_,
+                      anchor_index_);
 
     const std::int64_t k = muscles();
     const std::int64_t entries = data_.muscle_indptr.size() ? data_.muscle_indptr[k] : 0;
-    muscle_offsets_.assign(static_cast<std::size_t>(n) + 1, 0);
-    for (std::int64_t e = 0; e < entries; ++e)
-        ++muscle_offsets_[static_cast<std::size_t>(data_.muscle_particles[e]) + 1];
-    for (std::int64_t i = 0; i < n; ++i) muscle_offsets_[i + 1] += muscle_offsets_[i];
-    muscle_of_entry_.resize(static_cast<std::size_t>(entries));
-    weight_of_entry_.resize(static_cast<std::size_t>(entries));
-    fill.assign(muscle_offsets_.begin(), muscle_offsets_.end() - 1);
-    for (std::int64_t m = 0; m < k; ++m) {
-        for (std::int64_t e = data_.muscle_indptr[m]; e < data_.muscle_indptr[m + 1]; ++e) {
-            const std::size_t slot = static_cast<std::size_t>(fill[data_.muscle_particles[e]]++);
-            muscle_of_entry_[slot] = m;
-            weight_of_entry_[slot] = data_.muscle_weights[e];
-        }
+    std::vector<std::int64_t> muscle_entry;
+    group_by_particle(n, entries, [&](std::int64_t e) { return data_.muscle_particles[e]; }, muscle_offsets_,
+                      muscle_entry);
+    std::vector<std::int64_t> muscle_of(static_cast<std::size_t>(entries));
+    for (std::int64_t m = 0; m < k; ++m)
+        for (std::int64_t e = data_.muscle_indptr[m]; e < data_.muscle_indptr[m + 1]; ++e)
+            muscle_of[static_cast<std::size_t>(e)] = m;
+    muscle_of_entry_.resize(muscle_entry.size());
+    weight_of_entry_.resize(muscle_entry.size());
+    for (std::size_t slot = 0; slot < muscle_entry.size(); ++slot) {
+        muscle_of_entry_[slot] = muscle_of[static_cast<std::size_t>(muscle_entry[slot])];
+        weight_of_entry_[slot] = data_.muscle_weights[muscle_entry[slot]];
     }
 
     const std::int64_t prisms = static_cast<std::int64_t>(data_.prism_particles.rows());
-    prism_offsets_.assign(static_cast<std::size_t>(n) + 1, 0);
-    for (std::int64_t q = 0; q < prisms; ++q)
-        for (int c = 0; c < 6; ++c) ++prism_offsets_[static_cast<std::size_t>(data_.prism_particles(q, c)) + 1];
-    for (std::int64_t i = 0; i < n; ++i) prism_offsets_[i + 1] += prism_offsets_[i];
-    prism_corner_.resize(static_cast<std::size_t>(6 * prisms));
-    fill.assign(prism_offsets_.begin(), prism_offsets_.end() - 1);
-    for (std::int64_t q = 0; q < prisms; ++q)
-        for (int c = 0; c < 6; ++c)
-            prism_corner_[static_cast<std::size_t>(fill[data_.prism_particles(q, c)]++)] = 6 * q + c;
+    group_by_particle(n, 6 * prisms, [&](std::int64_t e) { return data_.prism_particles(e / 6, e % 6); },
+                      prism_offsets_, prism_corner_);
 
     data_.rest_stiffness = VectorX::Zero(n);
     for (std::int64_t s = 0; s < springs; ++s) {

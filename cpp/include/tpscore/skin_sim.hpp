@@ -274,10 +274,6 @@ private:
                   std::vector<double>& values, Points& kv) const;
     SkullGeometry skull_at(const SkinControls& controls) const;
     SkullContact locate(const Eigen::Vector3d& x, std::int64_t foot, const SkullGeometry& skull) const;
-    /// The unit direction out of the skull at a particle whose closest triangle is
-    /// `face` at `distance`: blended over the nearly-as-close triangles.
-    Eigen::Vector3d blended_normal(const Eigen::Vector3d& x, std::int64_t foot, const SkullGeometry& skull,
-                                   double distance, std::int64_t face) const;
     Points bone_points(const Points& points, const IndexVector& bones,
                        const JawMotion& jaw) const;
     Points muscle_points(const JawMotion& jaw) const;

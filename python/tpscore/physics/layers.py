@@ -42,14 +42,13 @@ Units: mm, g, s; 1 kPa = 1e3 g / (mm s^2); forces in g mm / s^2 (1 N = 1e6).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from types import SimpleNamespace
 
 import numpy as np
 import scipy.sparse as sp
 
 from .._validation import check_options
 from ..mesh import vertex_normals, voronoi_areas
-from .linearised import prism_volumes
+from .linearised import oriented_prisms
 from .muscles import SkinLinearMuscle, muscle_weights
 from .system import LINEAR, MANDIBLE, SKULL, SPHINCTER, SkinArrays, rim_edges
 
@@ -376,12 +375,9 @@ def _prism_arrays(head, rest: np.ndarray, material: SkinMaterial) -> dict:
         stiffness.append(np.full(len(faces), KPA * material.bulk_ratio * modulus))
     particles = np.concatenate(particles)
     stiffness = np.concatenate(stiffness)
-    volume, _ = prism_volumes(SimpleNamespace(prism_particles=particles), rest)
     # The skin's triangles face out and the layers lie below, which makes the tetrahedra
     # (a b c A ...) negative: the prism read from below is positive.
-    flip = volume < 0
-    particles[flip] = particles[flip][:, [3, 4, 5, 0, 1, 2]]
-    volume, _ = prism_volumes(SimpleNamespace(prism_particles=particles), rest)
+    particles, volume = oriented_prisms(particles, rest)
     # a prism flattened at rest (a column of no depth) keeps nothing
     keep = volume > 1e-9 * max(volume.max(initial=0.0), 1e-300)
     return dict(prism_particles=particles[keep], prism_rest_volume=volume[keep],

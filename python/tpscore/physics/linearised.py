@@ -6,11 +6,13 @@ adds the skull contact's rows and assembles its implicit step from them.
 """
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import scipy.sparse as sp
 
 __all__ = ["spring_state", "spring_stiffness_matrix", "spring_damping_matrix", "prism_volumes",
-           "prism_stiffness_matrix"]
+           "oriented_prisms", "prism_stiffness_matrix"]
 
 #: The three tetrahedra of a prism (top a b c = corners 0 1 2 over A B C = 3 4 5).
 PRISM_TETRAHEDRA = ((0, 1, 2, 3), (1, 2, 3, 4), (2, 3, 4, 5))
@@ -91,6 +93,17 @@ def prism_volumes(arrays, positions):
         gradient[:, i3] += g3
         gradient[:, i0] -= g1 + g2 + g3
     return volume, gradient
+
+
+def oriented_prisms(particles, positions):
+    """(p, 6) prism corners, each read from the other side (the three below first) where
+    its volume at ``positions`` is negative, and their volumes (p,) in that order."""
+    particles = np.array(particles, dtype=np.int64, copy=True)
+    volume, _ = prism_volumes(SimpleNamespace(prism_particles=particles), positions)
+    flip = volume < 0
+    particles[flip] = particles[flip][:, [3, 4, 5, 0, 1, 2]]
+    volume, _ = prism_volumes(SimpleNamespace(prism_particles=particles), positions)
+    return particles, volume
 
 
 def prism_stiffness_matrix(arrays, positions) -> sp.csr_matrix:

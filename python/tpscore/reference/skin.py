@@ -96,6 +96,9 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
     best_point = np.zeros_like(points)
     best_face = np.full(len(points), -1)
     best_rim = np.zeros(len(points), dtype=bool)
+    # every listed triangle wholly on the bone with the closest point on it, found once:
+    # the closest gives the height, the nearly-as-close ones the direction
+    hits = []
     for offset in range(int((stop - start).max(initial=0))):
         has = start + offset < stop
         face = np.where(has, arrays.skull_vertex_faces[np.minimum(start + offset, len(arrays.skull_vertex_faces) - 1)],
@@ -108,6 +111,7 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
         on_rim = np.zeros(len(points), dtype=bool)
         for k in range(3):
             on_rim |= (bary[:, k] == 0.0) & (((rim_bits >> k) & 1) == 1)
+        hits.append((has, face, closest, d2, on_rim))
         better = has & (d2 < best)  # strict: the first triangle wins a tie, as in the core
         best_rim = np.where(better, on_rim, best_rim)
         best = np.where(better, d2, best)
@@ -120,29 +124,18 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
     side = np.where(np.einsum("ij,ij->i", offset, face_normal) >= 0, 1.0, -1.0)
     height = side * distance
     # the direction out of the skull, blended over the nearly-as-close triangles the
-    # particle lies in front of or beside (see the core's blended_normal); inside, the
+    # particle lies in front of or beside (see the core's blended_direction); inside, the
     # closest triangle's
     blend = CONTACT_BLEND * max(float(np.max(arrays.contact_margin, initial=0.0)), 0.0)
     direction_sum = np.zeros_like(points)
-    for offset_index in range(int((stop - start).max(initial=0))):
-        has = start + offset_index < stop
-        face = np.where(has, arrays.skull_vertex_faces[np.minimum(start + offset_index,
-                                                                  len(arrays.skull_vertex_faces) - 1)], 0)
-        corners = arrays.skull_faces[face]
-        has &= np.all(arrays.skull_bone[corners] == bone[:, None], axis=1) & found
-        closest, bary, d2 = closest_point_on_triangles(points, skull[corners[:, 0]], skull[corners[:, 1]],
-                                                      skull[corners[:, 2]])
+    for has, face, closest, d2, on_rim in hits:
         own = np.sqrt(d2)
         excess = own - distance
         is_best = face == best_face
-        has &= (is_best | (excess < blend)) & (own > 1e-12)
-        rim_bits = arrays.skull_face_rim[face]
-        on_rim = np.zeros(len(points), dtype=bool)
-        for k in range(3):
-            on_rim |= (bary[:, k] == 0.0) & (((rim_bits >> k) & 1) == 1)
         to_point = points - closest
         # a triangle the particle lies behind (and not beside its rim) has no say
-        has &= is_best | on_rim | (np.einsum("ij,ij->i", to_point, face_normals[face]) >= 0)
+        has = (has & found & (is_best | (excess < blend)) & (own > 1e-12)
+               & (is_best | on_rim | (np.einsum("ij,ij->i", to_point, face_normals[face]) >= 0)))
         with np.errstate(invalid="ignore", divide="ignore"):
             weight = np.where(is_best, 1.0, (1.0 - excess / blend) ** 2 if blend > 0 else 0.0)
             term = (weight / own)[:, None] * to_point
