@@ -194,6 +194,9 @@ def test_bad_input_names_the_argument(coarse):
         SkinMaterial(dermal_depth=0.9, hypodermal_depth=0.5)
     with pytest.raises(ValueError, match="SkinMaterial.drag"):
         SkinMaterial(drag=-1.0)
+    for bad in (-1.0, float("nan"), 1j):
+        with pytest.raises(ValueError, match="SkinMaterial.bulk_ratio"):
+            SkinMaterial(bulk_ratio=bad)
     with pytest.raises(ValueError, match="skull_vertices"):
         head.with_changes(skull_vertices=head.skull_vertices[:-1])
 
