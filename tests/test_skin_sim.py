@@ -422,3 +422,48 @@ def test_the_contact_direction_turns_continuously_across_a_concave_crease():
     assert np.linalg.norm(forces[1] - forces[0]) < 1e-3 * np.linalg.norm(forces[0])
     # and away from the middle it leans toward the nearer slope's normal
     assert normals[2][0] < -1e-3
+
+
+def test_the_skull_rim_is_a_rounded_lip_tissue_cannot_slip_behind():
+    # The flat skull of random_arrays ends at x = 8. A particle 0.3 mm behind the
+    # skull's plane is inside while over the bone; past the rim it stays inside near
+    # the edge (the lip curves back only gradually), so its height runs on without a
+    # jump. (Counted as beside the edge at its distance from it, the height jumped from
+    # -0.3 to +0.3 mm there, and tissue that slipped round the edge was thrown back to
+    # the front one step later, without end.) In front, the height rises smoothly; far
+    # beyond the lip, a particle is beside the bone. Core and reference agree.
+    arrays = random_arrays()
+    core = arrays.core()
+    edge_vertex = int(np.argmin(np.linalg.norm(arrays.skull_vertices - [8.0, 0.0, 0.0], axis=1)))
+    rounding = reference.RIM_ROUNDING * arrays.contact_margin.max()
+    across = np.linspace(7.0, 8.0 + rounding + 1.0, 600)
+    for depth in (-0.3, 0.3):
+        points = np.column_stack([across, np.full_like(across, 0.5), np.full_like(across, depth)])
+        foot = np.full(len(points), edge_vertex)
+        height, normal, _ = reference.locate(arrays, points, foot)
+        assert np.allclose(core.skull_heights(points, foot, 0.0), height, rtol=0, atol=1e-12)
+        step = across[1] - across[0]
+        over, near, far = across < 8.0, (across > 8.0) & (across < 8.5), across > 8.0 + rounding
+        # continuous over the bone, at the edge and along the lip; where the lip ends,
+        # the height may step up, but on both sides it is far beyond any contact margin
+        assert np.abs(np.diff(height[~far])).max() < 1.5 * step
+        assert height[far].min() > 4 * arrays.contact_margin.max() < height[~far][-1]
+        assert np.allclose(height[over], depth)
+        if depth < 0:
+            assert (height[near] < 0).all()  # inside: pushed back to the front
+            assert (normal[near, 2] > 0.5).all()  # toward the front (and out round the lip)
+        else:
+            assert (np.diff(height[~over & ~far]) >= 0).all()  # rising along the lip
+        beside = np.hypot(across[far] - 8.0, depth)
+        assert np.allclose(height[far], beside)
+    # the core's forces on a particle in the lip agree with the reference's
+    positions = arrays.anchor_target.copy()
+    positions[0] = (8.3, 0.5, -0.2)
+    foot = arrays.particle_foot.copy()
+    foot[0] = edge_vertex
+    zero = np.zeros_like(positions)
+    expected = reference.forces(arrays, positions, zero, np.zeros(2), 0.0, foot)
+    got = core.forces(positions, zero, foot, np.zeros(2), 0.0)
+    assert np.abs(got - expected).max() < 1e-12 * np.abs(expected).max()
+    assert expected[0, 2] - reference.forces(replace(arrays, contact_stiffness=np.zeros(arrays.particles)).validated(),
+                                              positions, zero, np.zeros(2), 0.0, foot)[0, 2] > 0

@@ -36,6 +36,9 @@ constexpr double kMuscleCore = 1.0;
 // The contact direction blends triangles up to this fraction of the largest contact
 // margin farther than the closest one (see blended_direction).
 constexpr double kContactBlend = 0.5;
+// Width of the rounded lip the skull's rim ends in, in largest contact margins (see
+// rim_contact): 4 mm at the default 0.5 mm margin.
+constexpr double kRimRounding = 8.0;
 
 
 // One spring seen from its first particle: unit direction toward the second, current
@@ -139,6 +142,7 @@ struct SkullHit {
     Vec3 point;
     double squared_distance;
     bool on_rim;  // the closest point lies on a rim edge of the bone
+    Vec3 barycentric;
 };
 
 // The direction out of the skull at a particle outside it (or beside its rim), blended
@@ -169,6 +173,37 @@ Vec3 blended_direction(const Vec3& x, const std::vector<SkullHit>& hits, std::si
     }
     const double length = sum.norm();
     return length > 1e-12 ? Vec3(sum / length) : Vec3(row(face_normals, face));
+}
+
+// Contact beyond the skull's rim (the closest point `hit` on a rim edge), within
+// `rounding` of the edge across it: the bone ends in a rounded lip that curves back
+// behind the rim by `rounding` over that width. The height is measured along a normal
+// that turns from the triangle's (at the edge, where the height meets that of a
+// particle over or behind the triangle) to the rim's own vertex normals, interpolated
+// along the edge (which agree from one rim triangle to the next), and rises by the
+// lip's curve. Counting such a particle as beside the edge instead, at its distance
+// from it, let tissue slip round the edge to the bone's back; there, one step past the
+// edge it counted as inside and was thrown back to the front, and a particle that
+// orbited the edge so never came to rest. Returns false beyond the lip.
+bool rim_contact(const Vec3& x, const SkullHit& hit, double rounding, const Points& face_normals,
+                 const Points& vertex_normals, const Faces& faces, SkullContact& contact) {
+    const Vec3 face_normal = row(face_normals, hit.face);
+    const Vec3 offset = x - hit.point;
+    const Vec3 beyond = offset - offset.dot(face_normal) * face_normal;
+    const double across = beyond.norm();
+    if (!(across < rounding)) return false;
+    Vec3 rim_normal = Vec3::Zero();
+    for (int k = 0; k < 3; ++k) rim_normal += hit.barycentric[k] * row(vertex_normals, faces(hit.face, k));
+    const double s = across / rounding;
+    const double curve = s * s * (3.0 - 2.0 * s);  // 0 at the edge, 1 at the lip's end, flat at both
+    const Vec3 normal = ((1.0 - curve) * face_normal + curve * rim_normal.normalized()).normalized();
+    contact.height = offset.dot(normal) + rounding * curve;
+    Vec3 gradient = normal;
+    if (across > 1e-12) gradient += 6.0 * s * (1.0 - s) * beyond / across;
+    const double slope = gradient.norm();
+    contact.normal = gradient / slope;
+    contact.point = x - (contact.height / slope) * contact.normal;
+    return true;
 }
 
 }  // namespace
@@ -218,7 +253,8 @@ SkullContact SkinSystem::locate(const Eigen::Vector3d& x, std::int64_t foot,
         bool on_rim = false;
         for (int k = 0; k < 3; ++k)
             if (t.barycentric[k] == 0.0 && (d.skull_face_rim[f] >> k) & 1) on_rim = true;
-        hits.push_back({f, Vec3(t.point[0], t.point[1], t.point[2]), t.squared_distance, on_rim});
+        hits.push_back({f, Vec3(t.point[0], t.point[1], t.point[2]), t.squared_distance, on_rim,
+                        Vec3(t.barycentric[0], t.barycentric[1], t.barycentric[2])});
         if (t.squared_distance < hits[closest].squared_distance) closest = hits.size() - 1;
     }
     if (hits.empty()) {
@@ -231,6 +267,9 @@ SkullContact SkinSystem::locate(const Eigen::Vector3d& x, std::int64_t foot,
     best.point = nearest.point;
     const double distance = std::sqrt(nearest.squared_distance);
     const double blend = kContactBlend * max_margin_;
+    if (nearest.on_rim && rim_contact(x, nearest, kRimRounding * max_margin_, skull.face_normals, skull.normals,
+                                      d.skull_faces, best))
+        return best;
     if (nearest.on_rim) {
         // The closest skull point lies on the rim of the particle's bone (the skull's
         // outline, the seam to the other bone): the particle is beside the bone, not

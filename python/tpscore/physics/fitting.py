@@ -98,12 +98,18 @@ def carry_head(template: Head, deform, vertices=None) -> Head:
     if len(skull) == len(vertices):
         # Each skull vertex lies under the skin vertex of its column. The fit's final
         # snap moves the skin beyond the smooth map by up to a few millimetres; where it
-        # moves the skin toward the skull, the skull follows, so the tissue keeps the
-        # depth the smooth map gave it (a snap that crushed the chin's tissue to 2 mm
-        # made the skin chatter); where it moves the skin out, the tissue thickens.
+        # moves the skin toward the skull, the skull follows along the column by as
+        # much, so the tissue keeps the depth the smooth map gave it (a snap that
+        # crushed the chin's tissue to 2 mm made the skin chatter); where it moves the
+        # skin out, the tissue thickens. Only the column's part of the snap is followed:
+        # its sideways part differs from one vertex to the next, and following it
+        # folded skull triangles over, behind which tissue was caught.
         smooth = np.asarray(mapping(template.vertices), dtype=np.float64)
-        crushed = np.linalg.norm(vertices - skull, axis=1) < np.linalg.norm(smooth - skull, axis=1)
-        skull = skull + np.where(crushed[:, None], vertices - smooth, 0.0)
+        column = smooth - skull
+        length = np.linalg.norm(column, axis=1)
+        outward = np.divide(column, length[:, None], out=np.zeros_like(column), where=length[:, None] > 0)
+        inward = np.maximum(-np.einsum("ij,ij->i", vertices - smooth, outward), 0.0)
+        skull = skull - inward[:, None] * outward
     pivot = np.asarray(mapping(template.jaw_pivot[None]), dtype=np.float64)[0]
     fitted_landmarks = np.full((len(template.landmark_vertices), 3), np.nan)
     present = template.landmark_vertices >= 0

@@ -44,6 +44,8 @@ MUSCLE_CORE = 1.0
 #: The contact direction blends triangles up to this fraction of the largest contact
 #: margin farther than the closest one.
 CONTACT_BLEND = 0.5
+#: Width of the rounded lip the skull's rim ends in, in largest contact margins.
+RIM_ROUNDING = 8.0
 
 
 def jaw_rotation(axis, angle: float) -> np.ndarray:
@@ -85,7 +87,11 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
     normal, and the unit direction out of the skull, blended over the triangles up to
     CONTACT_BLEND times the largest margin farther (weights (1 - excess / blend)^2); the
     vertex's tangent plane where no such triangle exists. Where the closest point lies
-    on the skull's rim, the particle is beside the bone, at its distance from the rim.
+    on the skull's rim, the bone ends in a rounded lip RIM_ROUNDING margins wide that
+    curves back behind the rim by as much: the height is measured along a normal that
+    turns from the triangle's to the rim's interpolated vertex normal and rises with the
+    lip's curve; beyond the lip, the particle is beside the bone, at its distance from
+    the rim.
     """
     skull, normals, face_normals = _skull_at(arrays, jaw_angle) if geometry is None else geometry
     points = np.asarray(points, dtype=np.float64)
@@ -96,6 +102,7 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
     best_point = np.zeros_like(points)
     best_face = np.full(len(points), -1)
     best_rim = np.zeros(len(points), dtype=bool)
+    best_bary = np.zeros_like(points)
     # every listed triangle wholly on the bone with the closest point on it, found once:
     # the closest gives the height, the nearly-as-close ones the direction
     hits = []
@@ -114,6 +121,7 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
         hits.append((has, face, closest, d2, on_rim))
         better = has & (d2 < best)  # strict: the first triangle wins a tie, as in the core
         best_rim = np.where(better, on_rim, best_rim)
+        best_bary = np.where(better[:, None], bary, best_bary)
         best = np.where(better, d2, best)
         best_point = np.where(better[:, None], closest, best_point)
         best_face = np.where(better, face, best_face)
@@ -154,6 +162,26 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
     height = np.where(found, np.where(best_rim, distance, height), plane_height)
     normal = np.where(found[:, None], normal, plane_normal)
     point = np.where(found[:, None], best_point, points - plane_height[:, None] * plane_normal)
+    # within the rounded lip beyond the rim (see the core's rim_contact)
+    rounding = RIM_ROUNDING * max(float(np.max(arrays.contact_margin, initial=0.0)), 0.0)
+    beyond = offset - np.einsum("ij,ij->i", offset, face_normal)[:, None] * face_normal
+    across = np.linalg.norm(beyond, axis=1)
+    lip = found & best_rim & (across < rounding)
+    if lip.any():
+        s = across[lip] / rounding
+        curve = s * s * (3.0 - 2.0 * s)
+        rim_normal = np.einsum("ik,ikj->ij", best_bary[lip], normals[arrays.skull_faces[best_face[lip]]])
+        rim_normal /= np.linalg.norm(rim_normal, axis=1)[:, None]
+        lip_normal = (1.0 - curve)[:, None] * face_normal[lip] + curve[:, None] * rim_normal
+        lip_normal /= np.linalg.norm(lip_normal, axis=1)[:, None]
+        lip_height = np.einsum("ij,ij->i", offset[lip], lip_normal) + rounding * curve
+        with np.errstate(invalid="ignore", divide="ignore"):
+            gradient = lip_normal + np.where((across[lip] > 1e-12)[:, None],
+                                             (6.0 * s * (1.0 - s) / across[lip])[:, None] * beyond[lip], 0.0)
+        slope = np.linalg.norm(gradient, axis=1)
+        height[lip] = lip_height
+        normal[lip] = gradient / slope[:, None]
+        point[lip] = points[lip] - (lip_height / slope)[:, None] * normal[lip]
     return height, normal, point
 
 
