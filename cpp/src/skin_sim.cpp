@@ -272,7 +272,8 @@ SkullContact SkinSystem::locate(const Eigen::Vector3d& x, std::int64_t foot,
         return best;
     if (nearest.on_rim) {
         // The closest skull point lies on the rim of the particle's bone (the skull's
-        // outline, the seam to the other bone): the particle is beside the bone, not
+        // outline, the seam to the other bone), beyond the rim's rounded lip
+        // (rim_contact): the particle is beside the bone, not
         // over it, at its distance from the rim. Counting it as inside would snap tissue
         // that slid past the rim back onto the rim's edge; for a particle above the
         // bone the height stays continuous as its closest point reaches the rim.
