@@ -444,18 +444,23 @@ def test_the_skull_rim_is_a_rounded_lip_tissue_cannot_slip_behind():
         assert np.allclose(core.skull_heights(points, foot, 0.0), height, rtol=0, atol=1e-12)
         step = across[1] - across[0]
         over, near, far = across < 8.0, (across > 8.0) & (across < 8.5), across > 8.0 + rounding
-        # continuous over the bone, at the edge and along the lip; where the lip ends,
-        # the height may step up, but on both sides it is far beyond any contact margin
-        assert np.abs(np.diff(height[~far])).max() < 1.5 * step
-        assert height[far].min() > 4 * arrays.contact_margin.max() < height[~far][-1]
+        # continuous over the bone, at the edge and along the lip wherever contact is
+        # near; where the lip ends the height may step, far beyond any contact margin
+        low = (height[:-1] < 4 * arrays.contact_margin.max()) | (height[1:] < 4 * arrays.contact_margin.max())
+        assert np.abs(np.diff(height)[low]).max() < 3 * step
+        assert height[far].min() > 4 * arrays.contact_margin.max()
         assert np.allclose(height[over], depth)
         if depth < 0:
             assert (height[near] < 0).all()  # inside: pushed back to the front
             assert (normal[near, 2] > 0.5).all()  # toward the front (and out round the lip)
         else:
-            assert (np.diff(height[~over & ~far]) >= 0).all()  # rising along the lip
+            rising = ~over[1:] & low
+            assert (np.diff(height)[rising] >= 0).all()  # rising along the lip
+        # beyond the lip: beside the bone, at about its distance from the edge (averaged
+        # with the nearly-as-close rim triangles')
         beside = np.hypot(across[far] - 8.0, depth)
-        assert np.allclose(height[far], beside)
+        blend = reference.CONTACT_BLEND * arrays.contact_margin.max()
+        assert (height[far] >= beside - 1e-9).all() and (height[far] <= beside + blend).all()
     # the core's forces on a particle in the lip agree with the reference's
     positions = arrays.anchor_target.copy()
     positions[0] = (8.3, 0.5, -0.2)

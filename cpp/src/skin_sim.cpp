@@ -37,7 +37,7 @@ constexpr double kMuscleCore = 1.0;
 // margin farther than the closest one (see blended_direction).
 constexpr double kContactBlend = 0.5;
 // Width of the rounded lip the skull's rim ends in, in largest contact margins (see
-// rim_contact): 4 mm at the default 0.5 mm margin.
+// lip_contact): 4 mm at the default 0.5 mm margin.
 constexpr double kRimRounding = 8.0;
 
 
@@ -175,35 +175,96 @@ Vec3 blended_direction(const Vec3& x, const std::vector<SkullHit>& hits, std::si
     return length > 1e-12 ? Vec3(sum / length) : Vec3(row(face_normals, face));
 }
 
-// Contact beyond the skull's rim (the closest point `hit` on a rim edge), within
-// `rounding` of the edge across it: the bone ends in a rounded lip that curves back
-// behind the rim by `rounding` over that width. The height is measured along a normal
-// that turns from the triangle's (at the edge, where the height meets that of a
-// particle over or behind the triangle) to the rim's own vertex normals, interpolated
-// along the edge (which agree from one rim triangle to the next), and rises by the
-// lip's curve. Counting such a particle as beside the edge instead, at its distance
-// from it, let tissue slip round the edge to the bone's back; there, one step past the
-// edge it counted as inside and was thrown back to the front, and a particle that
-// orbited the edge so never came to rest. Returns false beyond the lip.
-bool rim_contact(const Vec3& x, const SkullHit& hit, double rounding, const Points& face_normals,
-                 const Points& vertex_normals, const Faces& faces, SkullContact& contact) {
+// The skull's rim ends in a rounded lip `rounding` wide that curves back behind the
+// rim by as much. For a particle whose closest point on a triangle (`hit`) lies on a
+// rim edge, within `rounding` of that edge across it: the height over the lip and its
+// direction (the unit gradient), and how far across the edge the particle lies. The
+// height is measured along a normal that turns from the triangle's (at the edge, where
+// the height meets that of a particle over or behind the triangle) to the rim's own
+// vertex normals, interpolated along the edge (which agree from one rim triangle to
+// the next), raised by the lip's curve and divided by its gradient's length (the
+// distance to the lip's surface to first order: the level itself rises up to 1.8
+// times faster across the lip, and the penalty would be that much stiffer than the
+// stable step allows for). Counting a particle beyond the edge as beside it instead,
+// at its distance from it, let tissue slip round the edge to the bone's back; there,
+// one step past the edge it counted as inside and was thrown back to the front, and a
+// particle that orbited the edge so never came to rest. Returns false beyond the lip.
+bool lip_contact(const Vec3& x, const SkullHit& hit, double rounding, const Points& face_normals,
+                 const Points& vertex_normals, const Faces& faces, double& height, Vec3& direction,
+                 double& across) {
     const Vec3 face_normal = row(face_normals, hit.face);
     const Vec3 offset = x - hit.point;
     const Vec3 beyond = offset - offset.dot(face_normal) * face_normal;
-    const double across = beyond.norm();
+    across = beyond.norm();
     if (!(across < rounding)) return false;
     Vec3 rim_normal = Vec3::Zero();
     for (int k = 0; k < 3; ++k) rim_normal += hit.barycentric[k] * row(vertex_normals, faces(hit.face, k));
+    rim_normal.normalize();
     const double s = across / rounding;
     const double curve = s * s * (3.0 - 2.0 * s);  // 0 at the edge, 1 at the lip's end, flat at both
-    const Vec3 normal = ((1.0 - curve) * face_normal + curve * rim_normal.normalized()).normalized();
-    contact.height = offset.dot(normal) + rounding * curve;
-    Vec3 gradient = normal;
-    if (across > 1e-12) gradient += 6.0 * s * (1.0 - s) * beyond / across;
+    const double rise = 6.0 * s * (1.0 - s);        // its slope across
+    const Vec3 outward = across > 1e-12 ? Vec3(beyond / across) : Vec3::Zero();
+    const Vec3 normal = ((1.0 - curve) * face_normal + curve * rim_normal).normalized();
+    const Vec3 gradient = normal + rise * outward;
     const double slope = gradient.norm();
-    contact.normal = gradient / slope;
-    contact.point = x - (contact.height / slope) * contact.normal;
+    height = (offset.dot(normal) + rounding * curve) / slope;
+    direction = gradient / slope;
     return true;
+}
+
+// Contact where the closest point (hit `closest`, at `distance`) lies on the skull's
+// rim: height and direction averaged over the rim triangles nearly as close, with
+// blended_direction's weights, each giving its lip's height and direction
+// (lip_contact), or beyond the lip its distance and the direction away from it. Where
+// two rims meet (the outline and the seam to the other bone, a corner of the
+// outline) the closest triangle switches from one rim to the other, and each alone
+// gives another height and direction: a particle there once flicked between the two
+// at every step. Within `blend` of the edge the direction is handed over from the one
+// a particle just over the closest triangle gets (blended_direction over every
+// nearly-as-close triangle, or straight out from behind): a particle resting on the
+// edge flicked between those two as well. Farther out the other triangles are left
+// out of the direction: a particle level with the rim lies in the plane of its
+// neighbours, whose say switched on and off as it crossed them. At the edge, one rim
+// triangle alone gives the height over it, which meets the height over the triangle.
+SkullContact rim_contact(const Vec3& x, const std::vector<SkullHit>& hits, std::size_t closest,
+                         double distance, double blend, double rounding, const Points& face_normals,
+                         const Points& vertex_normals, const Faces& faces) {
+    SkullContact contact;
+    contact.face = hits[closest].face;
+    Vec3 rim_sum = Vec3::Zero();
+    double height_sum = 0.0, weight_sum = 0.0, across = 0.0;
+    for (std::size_t h = 0; h < hits.size(); ++h) {
+        const SkullHit& hit = hits[h];
+        if (!hit.on_rim) continue;
+        const double own = std::sqrt(hit.squared_distance);
+        const double excess = own - distance;
+        const bool nearest = h == closest;
+        if (!nearest && !(excess < blend)) continue;
+        const double w = nearest ? 1.0 : (1.0 - excess / blend) * (1.0 - excess / blend);
+        double height = own, hit_across = 0.0;
+        Vec3 direction = own > 1e-12 ? Vec3((x - hit.point) / own) : Vec3(row(face_normals, hit.face));
+        lip_contact(x, hit, rounding, face_normals, vertex_normals, faces, height, direction, hit_across);
+        if (nearest) across = hit_across;
+        height_sum += w * height;
+        weight_sum += w;
+        rim_sum += w * direction;
+    }
+    contact.height = height_sum / weight_sum;  // the closest hit is on the rim: weight_sum >= 1
+    const double length = rim_sum.norm();
+    Vec3 normal = length > 1e-12 ? Vec3(rim_sum / length) : Vec3(row(face_normals, contact.face));
+    const double t = blend > 0.0 ? std::min(across / blend, 1.0) : 1.0;
+    if (t < 1.0) {
+        const double handover = t * t * (3.0 - 2.0 * t);
+        const Vec3 face_normal = row(face_normals, contact.face);
+        // just over the triangle: blended in front, straight out from behind
+        const Vec3 edge = (x - hits[closest].point).dot(face_normal) < 0.0
+                              ? face_normal
+                              : blended_direction(x, hits, closest, distance, blend, face_normals);
+        normal = ((1.0 - handover) * edge + handover * normal).normalized();
+    }
+    contact.normal = normal;
+    contact.point = x - contact.height * contact.normal;
+    return contact;
 }
 
 }  // namespace
@@ -267,20 +328,11 @@ SkullContact SkinSystem::locate(const Eigen::Vector3d& x, std::int64_t foot,
     best.point = nearest.point;
     const double distance = std::sqrt(nearest.squared_distance);
     const double blend = kContactBlend * max_margin_;
-    if (nearest.on_rim && rim_contact(x, nearest, kRimRounding * max_margin_, skull.face_normals, skull.normals,
-                                      d.skull_faces, best))
-        return best;
-    if (nearest.on_rim) {
-        // The closest skull point lies on the rim of the particle's bone (the skull's
-        // outline, the seam to the other bone), beyond the rim's rounded lip
-        // (rim_contact): the particle is beside the bone, not
-        // over it, at its distance from the rim. Counting it as inside would snap tissue
-        // that slid past the rim back onto the rim's edge; for a particle above the
-        // bone the height stays continuous as its closest point reaches the rim.
-        best.height = distance;
-        best.normal = blended_direction(x, hits, closest, distance, blend, skull.face_normals);
-        return best;
-    }
+    if (nearest.on_rim)
+        // the closest skull point lies on the rim of the particle's bone (the skull's
+        // outline, the seam to the other bone)
+        return rim_contact(x, hits, closest, distance, blend, kRimRounding * max_margin_, skull.face_normals,
+                           skull.normals, d.skull_faces);
     const Vec3 face_normal = row(skull.face_normals, best.face);
     const Vec3 offset = x - best.point;
     if (offset.dot(face_normal) < 0.0) {

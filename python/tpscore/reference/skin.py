@@ -89,8 +89,8 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
     vertex's tangent plane where no such triangle exists. Where the closest point lies
     on the skull's rim, the bone ends in a rounded lip RIM_ROUNDING margins wide that
     curves back behind the rim by as much: the height is measured along a normal that
-    turns from the triangle's to the rim's interpolated vertex normal and rises with the
-    lip's curve; beyond the lip, the particle is beside the bone, at its distance from
+    turns from the triangle's to the rim's interpolated vertex normal, raised by the lip's
+    curve and divided by its gradient's length; beyond the lip, the particle is beside the bone, at its distance from
     the rim.
     """
     skull, normals, face_normals = _skull_at(arrays, jaw_angle) if geometry is None else geometry
@@ -118,7 +118,7 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
         on_rim = np.zeros(len(points), dtype=bool)
         for k in range(3):
             on_rim |= (bary[:, k] == 0.0) & (((rim_bits >> k) & 1) == 1)
-        hits.append((has, face, closest, d2, on_rim))
+        hits.append((has, face, closest, d2, on_rim, bary))
         better = has & (d2 < best)  # strict: the first triangle wins a tie, as in the core
         best_rim = np.where(better, on_rim, best_rim)
         best_bary = np.where(better[:, None], bary, best_bary)
@@ -136,7 +136,7 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
     # closest triangle's
     blend = CONTACT_BLEND * max(float(np.max(arrays.contact_margin, initial=0.0)), 0.0)
     direction_sum = np.zeros_like(points)
-    for has, face, closest, d2, on_rim in hits:
+    for has, face, closest, d2, on_rim, _ in hits:
         own = np.sqrt(d2)
         excess = own - distance
         is_best = face == best_face
@@ -162,27 +162,73 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
     height = np.where(found, np.where(best_rim, distance, height), plane_height)
     normal = np.where(found[:, None], normal, plane_normal)
     point = np.where(found[:, None], best_point, points - plane_height[:, None] * plane_normal)
-    # within the rounded lip beyond the rim (see the core's rim_contact)
-    rounding = RIM_ROUNDING * max(float(np.max(arrays.contact_margin, initial=0.0)), 0.0)
+    # where the closest point lies on the rim: height and direction averaged over the
+    # nearly-as-close rim triangles, each with its lip's, the direction handed over
+    # from the one just over the triangle within the blend's width of the edge (see the
+    # core's rim_contact and lip_contact)
+    rim = found & best_rim
+    if rim.any():
+        rounding = RIM_ROUNDING * max(float(np.max(arrays.contact_margin, initial=0.0)), 0.0)
+        height_sum = np.zeros(len(points))
+        weight_sum = np.zeros(len(points))
+        rim_sum = np.zeros_like(points)
+        across = np.zeros(len(points))
+        for has, face, closest, d2, on_rim, bary in hits:
+            own = np.sqrt(d2)
+            excess = own - distance
+            is_best = face == best_face
+            use = rim & has & on_rim & (is_best | (excess < blend))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                weight = np.where(is_best, 1.0, (1.0 - excess / blend) ** 2 if blend > 0 else 0.0)
+                direction = np.where((own > 1e-12)[:, None], (points - closest) / own[:, None], face_normals[face])
+            lip, lip_height, lip_direction, hit_across = _lip(arrays, normals, face_normals, points, closest, bary,
+                                                              face, rounding)
+            across = np.where(use & is_best, hit_across, across)
+            height_sum += np.where(use, weight * np.where(lip, lip_height, own), 0.0)
+            weight_sum += np.where(use, weight, 0.0)
+            rim_sum += np.where(use[:, None], weight[:, None] * np.where(lip[:, None], lip_direction, direction), 0.0)
+        length = np.linalg.norm(rim_sum[rim], axis=1)
+        rim_normal = np.where((length > 1e-12)[:, None], rim_sum[rim] / np.maximum(length, 1e-300)[:, None],
+                              face_normal[rim])
+        t = np.minimum(across[rim] / blend, 1.0) if blend > 0 else np.ones(int(rim.sum()))
+        handover = (t * t * (3.0 - 2.0 * t))[:, None]
+        # just over the triangle: blended in front, straight out from behind
+        edge = np.where((side[rim] < 0)[:, None], face_normal[rim], normal[rim])
+        turned = (1.0 - handover) * edge + handover * rim_normal
+        turned /= np.linalg.norm(turned, axis=1)[:, None]
+        height[rim] = height_sum[rim] / weight_sum[rim]
+        normal[rim] = np.where((t < 1.0)[:, None], turned, rim_normal)
+        point[rim] = points[rim] - height[rim][:, None] * normal[rim]
+    return height, normal, point
+
+
+def _lip(arrays, normals, face_normals, points, closest, bary, face, rounding):
+    """The rim's rounded lip seen from each point whose closest point on triangle
+    `face` is `closest` (weights `bary`): (within the lip (m,), height (m,), unit
+    direction (m, 3)); see the core's lip_contact."""
+    face_normal = face_normals[face]
+    offset = points - closest
     beyond = offset - np.einsum("ij,ij->i", offset, face_normal)[:, None] * face_normal
     across = np.linalg.norm(beyond, axis=1)
-    lip = found & best_rim & (across < rounding)
-    if lip.any():
-        s = across[lip] / rounding
-        curve = s * s * (3.0 - 2.0 * s)
-        rim_normal = np.einsum("ik,ikj->ij", best_bary[lip], normals[arrays.skull_faces[best_face[lip]]])
+    rim_bits = arrays.skull_face_rim[face]
+    on_rim = np.zeros(len(points), dtype=bool)
+    for k in range(3):
+        on_rim |= (bary[:, k] == 0.0) & (((rim_bits >> k) & 1) == 1)
+    inside = on_rim & (across < rounding)
+    s = np.where(inside, across / rounding, 0.0)[:, None] if rounding > 0 else np.zeros((len(points), 1))
+    curve = s * s * (3.0 - 2.0 * s)
+    rise = 6.0 * s * (1.0 - s)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        outward = np.where((across > 1e-12)[:, None], beyond / across[:, None], 0.0)
+        rim_normal = np.einsum("ik,ikj->ij", bary, normals[arrays.skull_faces[face]])
         rim_normal /= np.linalg.norm(rim_normal, axis=1)[:, None]
-        lip_normal = (1.0 - curve)[:, None] * face_normal[lip] + curve[:, None] * rim_normal
-        lip_normal /= np.linalg.norm(lip_normal, axis=1)[:, None]
-        lip_height = np.einsum("ij,ij->i", offset[lip], lip_normal) + rounding * curve
-        with np.errstate(invalid="ignore", divide="ignore"):
-            gradient = lip_normal + np.where((across[lip] > 1e-12)[:, None],
-                                             (6.0 * s * (1.0 - s) / across[lip])[:, None] * beyond[lip], 0.0)
+        normal = (1.0 - curve) * face_normal + curve * rim_normal
+        normal /= np.linalg.norm(normal, axis=1)[:, None]
+        gradient = normal + rise * outward
         slope = np.linalg.norm(gradient, axis=1)
-        height[lip] = lip_height
-        normal[lip] = gradient / slope[:, None]
-        point[lip] = points[lip] - (lip_height / slope)[:, None] * normal[lip]
-    return height, normal, point
+        height = (np.einsum("ij,ij->i", offset, normal) + rounding * curve[:, 0]) / slope
+        direction = gradient / slope[:, None]
+    return inside, np.where(inside, height, 0.0), np.where(inside[:, None], direction, 0.0), across
 
 
 def forces(arrays, positions, velocities, contractions, jaw_angle: float, foot=None) -> np.ndarray:
