@@ -88,10 +88,10 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
     CONTACT_BLEND times the largest margin farther (weights (1 - excess / blend)^2); the
     vertex's tangent plane where no such triangle exists. Where the closest point lies
     on the skull's rim, the bone ends in a rounded lip RIM_ROUNDING margins wide that
-    curves back behind the rim by as much: the height is measured along a normal that
-    turns from the triangle's to the rim's interpolated vertex normal, raised by the lip's
-    curve and divided by its gradient's length; beyond the lip, the particle is beside the bone, at its distance from
-    the rim.
+    curves back behind the rim by as much (:func:`_lip`; beyond it the particle is beside
+    the bone, at its distance from the rim), and height and direction are averaged over
+    the nearly-as-close rim triangles, the direction handed over from the blended one
+    within the blend's width of the edge.
     """
     skull, normals, face_normals = _skull_at(arrays, jaw_angle) if geometry is None else geometry
     points = np.asarray(points, dtype=np.float64)
@@ -162,50 +162,55 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
     height = np.where(found, np.where(best_rim, distance, height), plane_height)
     normal = np.where(found[:, None], normal, plane_normal)
     point = np.where(found[:, None], best_point, points - plane_height[:, None] * plane_normal)
-    # where the closest point lies on the rim: height and direction averaged over the
-    # nearly-as-close rim triangles, each with its lip's, the direction handed over
-    # from the one just over the triangle within the blend's width of the edge (see the
-    # core's rim_contact and lip_contact)
+    # where the closest point lies on the rim (see _rim_contacts)
     rim = found & best_rim
     if rim.any():
-        rounding = RIM_ROUNDING * max(float(np.max(arrays.contact_margin, initial=0.0)), 0.0)
-        height_sum = np.zeros(len(points))
-        weight_sum = np.zeros(len(points))
-        rim_sum = np.zeros_like(points)
-        across = np.zeros(len(points))
-        for has, face, closest, d2, on_rim, bary in hits:
-            own = np.sqrt(d2)
-            excess = own - distance
-            is_best = face == best_face
-            use = rim & has & on_rim & (is_best | (excess < blend))
-            with np.errstate(invalid="ignore", divide="ignore"):
-                weight = np.where(is_best, 1.0, (1.0 - excess / blend) ** 2 if blend > 0 else 0.0)
-                direction = np.where((own > 1e-12)[:, None], (points - closest) / own[:, None], face_normals[face])
-            lip, lip_height, lip_direction, hit_across = _lip(arrays, normals, face_normals, points, closest, bary,
-                                                              face, rounding)
-            across = np.where(use & is_best, hit_across, across)
-            height_sum += np.where(use, weight * np.where(lip, lip_height, own), 0.0)
-            weight_sum += np.where(use, weight, 0.0)
-            rim_sum += np.where(use[:, None], weight[:, None] * np.where(lip[:, None], lip_direction, direction), 0.0)
-        length = np.linalg.norm(rim_sum[rim], axis=1)
-        rim_normal = np.where((length > 1e-12)[:, None], rim_sum[rim] / np.maximum(length, 1e-300)[:, None],
-                              face_normal[rim])
-        t = np.minimum(across[rim] / blend, 1.0) if blend > 0 else np.ones(int(rim.sum()))
-        handover = (t * t * (3.0 - 2.0 * t))[:, None]
-        # just over the triangle: blended in front, straight out from behind
-        edge = np.where((side[rim] < 0)[:, None], face_normal[rim], normal[rim])
-        turned = (1.0 - handover) * edge + handover * rim_normal
-        turned /= np.linalg.norm(turned, axis=1)[:, None]
-        height[rim] = height_sum[rim] / weight_sum[rim]
-        normal[rim] = np.where((t < 1.0)[:, None], turned, rim_normal)
+        edge = np.where((side < 0)[:, None], face_normal, normal)
+        height[rim], normal[rim] = _rim_contacts(arrays, normals, face_normals, points, hits, best_face, distance,
+                                                 blend, edge, rim)
         point[rim] = points[rim] - height[rim][:, None] * normal[rim]
     return height, normal, point
+
+
+def _rim_contacts(arrays, normals, face_normals, points, hits, best_face, distance, blend, edge, rim):
+    """Height and direction of the points `rim` whose closest point lies on the rim:
+    averaged over the nearly-as-close rim triangles, each with its lip's (:func:`_lip`),
+    the direction handed over within the blend's width of the edge from `edge` (the
+    one just over the triangle: blended in front, straight out from behind); see the
+    core's rim_contact."""
+    rounding = RIM_ROUNDING * max(float(np.max(arrays.contact_margin, initial=0.0)), 0.0)
+    height_sum = np.zeros(len(points))
+    weight_sum = np.zeros(len(points))
+    rim_sum = np.zeros_like(points)
+    across = np.zeros(len(points))
+    for has, face, closest, d2, on_rim, bary in hits:
+        own = np.sqrt(d2)
+        excess = own - distance
+        is_best = face == best_face
+        use = rim & has & on_rim & (is_best | (excess < blend))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            weight = np.where(is_best, 1.0, (1.0 - excess / blend) ** 2 if blend > 0 else 0.0)
+            direction = np.where((own > 1e-12)[:, None], (points - closest) / own[:, None], face_normals[face])
+        lip, lip_height, lip_direction, hit_across = _lip(arrays, normals, face_normals, points, closest, bary, face,
+                                                          rounding)
+        across = np.where(use & is_best, hit_across, across)
+        height_sum += np.where(use, weight * np.where(lip, lip_height, own), 0.0)
+        weight_sum += np.where(use, weight, 0.0)
+        rim_sum += np.where(use[:, None], weight[:, None] * np.where(lip[:, None], lip_direction, direction), 0.0)
+    length = np.linalg.norm(rim_sum[rim], axis=1)
+    rim_normal = np.where((length > 1e-12)[:, None], rim_sum[rim] / np.maximum(length, 1e-300)[:, None],
+                          face_normals[best_face[rim]])
+    t = np.minimum(across[rim] / blend, 1.0) if blend > 0 else np.ones(int(rim.sum()))
+    handover = (t * t * (3.0 - 2.0 * t))[:, None]
+    turned = (1.0 - handover) * edge[rim] + handover * rim_normal
+    turned /= np.linalg.norm(turned, axis=1)[:, None]
+    return height_sum[rim] / weight_sum[rim], np.where((t < 1.0)[:, None], turned, rim_normal)
 
 
 def _lip(arrays, normals, face_normals, points, closest, bary, face, rounding):
     """The rim's rounded lip seen from each point whose closest point on triangle
     `face` is `closest` (weights `bary`): (within the lip (m,), height (m,), unit
-    direction (m, 3)); see the core's lip_contact."""
+    direction (m, 3), distance across the edge (m,)); see the core's lip_contact."""
     face_normal = face_normals[face]
     offset = points - closest
     beyond = offset - np.einsum("ij,ij->i", offset, face_normal)[:, None] * face_normal
