@@ -145,6 +145,15 @@ struct SkullHit {
     Vec3 barycentric;
 };
 
+// The weight of a triangle `excess` farther than the closest one in the blends over the
+// nearly-as-close triangles: 1 for the closest, (1 - excess / blend)^2 within `blend`,
+// 0 (left out) beyond.
+inline double closeness_weight(bool nearest, double excess, double blend) {
+    if (nearest) return 1.0;
+    if (!(excess < blend)) return 0.0;
+    return (1.0 - excess / blend) * (1.0 - excess / blend);
+}
+
 // The direction out of the skull at a particle outside it (or beside its rim), blended
 // over the triangles whose distance is within `blend` of the closest one's (hit
 // `closest`, at `distance`), each weighted (1 - excess / blend)^2: in a concave crease
@@ -161,14 +170,13 @@ Vec3 blended_direction(const Vec3& x, const std::vector<SkullHit>& hits, std::si
     for (std::size_t h = 0; h < hits.size(); ++h) {
         const SkullHit& hit = hits[h];
         const double own = std::sqrt(hit.squared_distance);
-        const double excess = own - distance;
         const bool nearest = h == closest;
-        if (!nearest && !(excess < blend)) continue;
+        const double w = closeness_weight(nearest, own - distance, blend);
+        if (w == 0.0) continue;
         if (!(own > 1e-12)) continue;
         const Vec3 offset = x - hit.point;
         // a triangle the particle lies behind (and not beside its rim) has no say
         if (!nearest && !hit.on_rim && offset.dot(row(face_normals, hit.face)) < 0.0) continue;
-        const double w = nearest ? 1.0 : (1.0 - excess / blend) * (1.0 - excess / blend);
         sum += w * offset / own;
     }
     const double length = sum.norm();
@@ -213,8 +221,8 @@ bool lip_contact(const Vec3& x, const SkullHit& hit, double rounding, const Poin
 }
 
 // Contact where the closest point (hit `closest`, at `distance`) lies on the skull's
-// rim: height and direction averaged over the rim triangles nearly as close, with
-// blended_direction's weights, each giving its lip's height and direction
+// rim: height and direction averaged over the rim triangles nearly as close
+// (closeness_weight), each giving its lip's height and direction
 // (lip_contact), or beyond the lip its distance and the direction away from it. Where
 // two rims meet (the outline and the seam to the other bone, a corner of the
 // outline) the closest triangle switches from one rim to the other, and each alone
@@ -237,10 +245,9 @@ SkullContact rim_contact(const Vec3& x, const std::vector<SkullHit>& hits, std::
         const SkullHit& hit = hits[h];
         if (!hit.on_rim) continue;
         const double own = std::sqrt(hit.squared_distance);
-        const double excess = own - distance;
         const bool nearest = h == closest;
-        if (!nearest && !(excess < blend)) continue;
-        const double w = nearest ? 1.0 : (1.0 - excess / blend) * (1.0 - excess / blend);
+        const double w = closeness_weight(nearest, own - distance, blend);
+        if (w == 0.0) continue;
         double height = own, hit_across = 0.0;
         Vec3 direction = own > 1e-12 ? Vec3((x - hit.point) / own) : Vec3(row(face_normals, hit.face));
         lip_contact(x, hit, rounding, face_normals, vertex_normals, faces, height, direction, hit_across);

@@ -145,8 +145,7 @@ def locate(arrays, points, foot, jaw_angle: float = 0.0, geometry=None):
         has = (has & found & (is_best | (excess < blend)) & (own > 1e-12)
                & (is_best | on_rim | (np.einsum("ij,ij->i", to_point, face_normals[face]) >= 0)))
         with np.errstate(invalid="ignore", divide="ignore"):
-            weight = np.where(is_best, 1.0, (1.0 - excess / blend) ** 2 if blend > 0 else 0.0)
-            term = (weight / own)[:, None] * to_point
+            term = (_closeness_weight(is_best, excess, blend) / own)[:, None] * to_point
         direction_sum += np.where(has[:, None], term, 0.0)
     length = np.linalg.norm(direction_sum, axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -188,11 +187,11 @@ def _rim_contacts(arrays, normals, face_normals, points, hits, best_face, distan
         excess = own - distance
         is_best = face == best_face
         use = rim & has & on_rim & (is_best | (excess < blend))
+        weight = _closeness_weight(is_best, excess, blend)
         with np.errstate(invalid="ignore", divide="ignore"):
-            weight = np.where(is_best, 1.0, (1.0 - excess / blend) ** 2 if blend > 0 else 0.0)
             direction = np.where((own > 1e-12)[:, None], (points - closest) / own[:, None], face_normals[face])
         lip, lip_height, lip_direction, hit_across = _lip(arrays, normals, face_normals, points, closest, bary, face,
-                                                          rounding)
+                                                          on_rim, rounding)
         across = np.where(use & is_best, hit_across, across)
         height_sum += np.where(use, weight * np.where(lip, lip_height, own), 0.0)
         weight_sum += np.where(use, weight, 0.0)
@@ -207,18 +206,22 @@ def _rim_contacts(arrays, normals, face_normals, points, hits, best_face, distan
     return height_sum[rim] / weight_sum[rim], np.where((t < 1.0)[:, None], turned, rim_normal)
 
 
-def _lip(arrays, normals, face_normals, points, closest, bary, face, rounding):
+def _closeness_weight(is_best, excess, blend):
+    """Weights of the blends over the nearly-as-close triangles: 1 for the closest,
+    (1 - excess / blend)^2 within `blend` farther (callers mask the rest out)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(is_best, 1.0, (1.0 - excess / blend) ** 2 if blend > 0 else 0.0)
+
+
+def _lip(arrays, normals, face_normals, points, closest, bary, face, on_rim, rounding):
     """The rim's rounded lip seen from each point whose closest point on triangle
-    `face` is `closest` (weights `bary`): (within the lip (m,), height (m,), unit
-    direction (m, 3), distance across the edge (m,)); see the core's lip_contact."""
+    `face` is `closest` (weights `bary`, on a rim edge where `on_rim`): (within the lip
+    (m,), height (m,), unit direction (m, 3), distance across the edge (m,)); see the
+    core's lip_contact."""
     face_normal = face_normals[face]
     offset = points - closest
     beyond = offset - np.einsum("ij,ij->i", offset, face_normal)[:, None] * face_normal
     across = np.linalg.norm(beyond, axis=1)
-    rim_bits = arrays.skull_face_rim[face]
-    on_rim = np.zeros(len(points), dtype=bool)
-    for k in range(3):
-        on_rim |= (bary[:, k] == 0.0) & (((rim_bits >> k) & 1) == 1)
     inside = on_rim & (across < rounding)
     s = np.where(inside, across / rounding, 0.0)[:, None] if rounding > 0 else np.zeros((len(points), 1))
     curve = s * s * (3.0 - 2.0 * s)
