@@ -437,7 +437,7 @@ def test_fit_does_not_depend_on_thread_count():
 @pytest.mark.parametrize("k", [1, 3])
 def test_evaluation_agrees_with_the_evaluation_matrix_at_every_distance(k):
     # The evaluation loop and the evaluation matrix compute phi with two different
-    # logarithms (a hand-written one where the CPU has AVX-512); queries from 1e-9 mm
+    # logarithms (hand-written ones for AVX-512 and AVX2); queries from 1e-9 mm
     # to 1e5 mm away from the centres, and on them, take every range of r^2 through it.
     rng = np.random.default_rng(30 + k)
     centres = face_like_landmarks(rng, 40)

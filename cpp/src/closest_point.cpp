@@ -274,7 +274,6 @@ TPSCORE_INLINE void closest_point_rows_impl(const SurfaceView& surface, const Po
         double d2;
     };
     Entry stack[kStackSize * MeshSurface::kWide];
-    const MeshSurface::Node* nodes = surface.nodes;
     std::int32_t previous_leaf = -1;
     for (std::size_t r = row_begin; r < row_end; ++r) {
         const double q[3] = {queries(r, 0), queries(r, 1), queries(r, 2)};

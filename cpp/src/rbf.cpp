@@ -7,6 +7,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <limits>
 #include <optional>
 #include <stdexcept>
@@ -30,12 +31,12 @@ double log(double) noexcept __attribute__((simd("notinbranch")));
 double exp(double) noexcept __attribute__((simd("notinbranch")));
 }
 // The loops are built per instruction set (TPSCORE_DISPATCH, measured above:
-// x86-64-v3 brings AVX2 + FMA, v4 AVX-512); the tps evaluation has a hand-written
-// AVX-512 loop besides (see accumulate_tps_avx512).
-#define TPSCORE_AVX512_TPS TPSCORE_MULTI_TARGET
+// x86-64-v3 brings AVX2 + FMA, v4 AVX-512); the tps evaluation has hand-written
+// AVX-512 and AVX2 loops besides (accumulate_tps_avx512, accumulate_tps_avx2).
+#define TPSCORE_HAND_WRITTEN_TPS TPSCORE_MULTI_TARGET
 #include <immintrin.h>
 #else
-#define TPSCORE_AVX512_TPS 0
+#define TPSCORE_HAND_WRITTEN_TPS 0
 #endif
 
 namespace tpscore {
@@ -149,7 +150,7 @@ TPSCORE_DISPATCH(accumulate_block,
                   std::int64_t k, double* acc),
                  (kernel, e2, qx, qy, qz, cx, cy, cz, n, weights, k, acc))
 
-#if TPSCORE_AVX512_TPS
+#if TPSCORE_HAND_WRITTEN_TPS
 // --- the tps evaluation, by hand for AVX-512 ------------------------------------------
 //
 // At 22,500 x 60 the tps evaluation is nearly all logarithms: glibc's vector log
@@ -254,20 +255,199 @@ TPSCORE_TARGET_V4 void accumulate_tps_avx512(const double* qx, const double* qy,
 }
 static_assert(kBlock % 16 == 0, "accumulate_tps_avx512 takes 16 queries at a time");
 
+// --- the tps evaluation, by hand for AVX2 ----------------------------------------------
+//
+// Through glibc's AVX2 vector log (which gathers its table from memory) the evaluation
+// took 3.2 times its arithmetic limit at 22,500 x 60. AVX2 has neither getmant/getexp
+// nor a two-register permute of doubles, so this log takes x = m 2^k apart by its bits
+// (x >= DBL_MIN and finite or +inf: no sign, subnormal or NaN to handle) and looks up
+// c ~ 1/m in an 8-entry table, indexed by the mantissa's top three bits, with 32-bit
+// lane permutes: each table is held as its entries' low halves in one register and
+// high halves in another, and c has 20 mantissa bits, so its low half is zero and one
+// permute fetches it. It sums k log 2 - log c + log1p(r), r = mc - 1, |r| < 0.059,
+// where log1p(r) = r + r^2 Q(r) and Q is the degree-8 Chebyshev fit of
+// (log1p(r) - r) / r^2 on |r| <= 0.059 (mpmath.chebyfit at 40 digits: error 3.3e-15 in
+// Q, 1.1e-17 in log1p; twelve Taylor terms would need two more multiply-adds, which
+// was 8 % of the loop's time). Q runs as two Horner chains in r^2, interleaved. Its
+// accuracy is log_avx512's: at most one unit in the last place of max(1, |log x|)
+// from std::log (2^20 values from 1e-17 to 1e17 and 2^22 mantissas at 7 exponents).
+// One thread, 22,500 x 60: 2.0 ns a pair through libmvec, 1.6 with the table in
+// pairs of floats and a blend on its third bit, 1.5 now.
+
+struct LogTableAvx2 {
+    alignas(32) std::uint32_t reciprocal_high[8];  // c_j's high half (its low half is 0)
+    alignas(32) std::uint32_t minus_log_low[8], minus_log_high[8];  // -log(c_j)'s halves
+    LogTableAvx2() {
+        for (int j = 0; j < 8; ++j) {
+            // c_j ~ 1 / (the centre of [1 + j/8, 1 + (j+1)/8)), cut to 20 mantissa bits
+            const double centre = 1.0 / (1.0 + (j + 0.5) / 8.0);
+            std::uint64_t c_bits;
+            std::memcpy(&c_bits, &centre, 8);
+            c_bits &= 0xFFFFFFFF00000000ULL;
+            double c;
+            std::memcpy(&c, &c_bits, 8);
+            const double minus_log = -std::log(c);
+            std::uint64_t log_bits;
+            std::memcpy(&log_bits, &minus_log, 8);
+            reciprocal_high[j] = static_cast<std::uint32_t>(c_bits >> 32);
+            minus_log_low[j] = static_cast<std::uint32_t>(log_bits);
+            minus_log_high[j] = static_cast<std::uint32_t>(log_bits >> 32);
+        }
+    }
+};
+const LogTableAvx2 log_table_avx2;
+
+struct LogConstantsAvx2 {
+    __m256i reciprocal_high, minus_log_low, minus_log_high;
+};
+
+TPSCORE_TARGET_V3 TPSCORE_INLINE __m256i load_lanes(const std::uint32_t* lanes) {
+    return _mm256_load_si256(reinterpret_cast<const __m256i*>(lanes));
+}
+
+TPSCORE_TARGET_V3 TPSCORE_INLINE LogConstantsAvx2 log_constants_avx2() {
+    return {load_lanes(log_table_avx2.reciprocal_high), load_lanes(log_table_avx2.minus_log_low),
+            load_lanes(log_table_avx2.minus_log_high)};
+}
+
+TPSCORE_TARGET_V3 TPSCORE_INLINE __m256d log_avx2(__m256d x, const LogConstantsAvx2& t) {
+    const __m256i bits = _mm256_castpd_si256(x);
+    // k as a double: the 11 exponent bits put in the mantissa of 2^52 make 2^52 + e exactly.
+    const __m256i biased = _mm256_or_si256(_mm256_srli_epi64(bits, 52), _mm256_set1_epi64x(0x4330000000000000));
+    const __m256d k = _mm256_sub_pd(_mm256_castsi256_pd(biased), _mm256_set1_pd(4503599627370496.0 + 1023.0));
+    const __m256d m = _mm256_castsi256_pd(_mm256_or_si256(
+        _mm256_and_si256(bits, _mm256_set1_epi64x(0x000FFFFFFFFFFFFF)), _mm256_set1_epi64x(0x3FF0000000000000)));
+    // j (mantissa bits 51..49) in the low three bits of each double's low 32-bit lane
+    // (shifted as 64 bits) and of its high lane (shifted as 32 bits): the permute
+    // reads only those three bits of an index.
+    const __m256i j_low = _mm256_srli_epi64(bits, 49), j_high = _mm256_srli_epi32(bits, 17);
+    const __m256i high_lanes_of_c = _mm256_permutevar8x32_epi32(t.reciprocal_high, j_high);
+    const __m256d c = _mm256_castsi256_pd(_mm256_blend_epi32(_mm256_setzero_si256(), high_lanes_of_c, 0xAA));
+    const __m256d minus_log_c = _mm256_castsi256_pd(
+        _mm256_blend_epi32(_mm256_permutevar8x32_epi32(t.minus_log_low, j_low),
+                           _mm256_permutevar8x32_epi32(t.minus_log_high, j_high), 0xAA));
+    const __m256d r = _mm256_fmsub_pd(m, c, _mm256_set1_pd(1.0));  // one rounding, as in log_avx512
+    const __m256d s = _mm256_mul_pd(r, r);
+    // Q(r) = even(s) + r odd(s): the fit's coefficients of even and of odd powers.
+    __m256d even = _mm256_set1_pd(-0.10065561993520983242), odd = _mm256_set1_pd(0.11182629172946546154);
+    even = _mm256_fmadd_pd(even, s, _mm256_set1_pd(-0.12499828592574585559));
+    odd = _mm256_fmadd_pd(odd, s, _mm256_set1_pd(0.14285527309924379806));
+    even = _mm256_fmadd_pd(even, s, _mm256_set1_pd(-0.16666666832508468936));
+    odd = _mm256_fmadd_pd(odd, s, _mm256_set1_pd(0.20000000180903257892));
+    even = _mm256_fmadd_pd(even, s, _mm256_set1_pd(-0.24999999999956693159));
+    odd = _mm256_fmadd_pd(odd, s, _mm256_set1_pd(0.33333333333286093578));
+    even = _mm256_fmadd_pd(even, s, _mm256_set1_pd(-0.5));
+    const __m256d log1p_r = _mm256_fmadd_pd(_mm256_fmadd_pd(odd, r, even), s, r);
+    return _mm256_add_pd(_mm256_fmadd_pd(k, _mm256_set1_pd(0.6931471805599453), minus_log_c), log1p_r);
+}
+
+// accumulate_tps_avx512 for AVX2, 4 queries (one vector) at a time meeting every
+// centre: with 8 or 16 the loop was 4-7 % slower (the 16 registers run short).
+template <int Kdim>
+TPSCORE_TARGET_V3 void accumulate_tps_avx2(const double* qx, const double* qy, const double* qz,
+                                           const double* cx, const double* cy, const double* cz,
+                                           std::int64_t n, const double* weights, double* acc) {
+    const LogConstantsAvx2 table = log_constants_avx2();
+    const __m256d tiny = _mm256_set1_pd(std::numeric_limits<double>::min());
+    for (std::int64_t q = 0; q < kBlock; q += 4) {
+        const __m256d x = _mm256_load_pd(qx + q), y = _mm256_load_pd(qy + q), z = _mm256_load_pd(qz + q);
+        __m256d sum[Kdim];
+        for (int c = 0; c < Kdim; ++c) sum[c] = _mm256_loadu_pd(acc + c * kBlock + q);
+        for (std::int64_t j = 0; j < n; ++j) {
+            const __m256d dx = _mm256_sub_pd(x, _mm256_set1_pd(cx[j]));
+            const __m256d dy = _mm256_sub_pd(y, _mm256_set1_pd(cy[j]));
+            const __m256d dz = _mm256_sub_pd(z, _mm256_set1_pd(cz[j]));
+            // d2 + DBL_MIN, as in accumulate_tps_avx512
+            const __m256d d = _mm256_fmadd_pd(dz, dz, _mm256_fmadd_pd(dy, dy, _mm256_fmadd_pd(dx, dx, tiny)));
+            const __m256d u = _mm256_mul_pd(d, log_avx2(d, table));
+            for (int c = 0; c < Kdim; ++c) sum[c] = _mm256_fmadd_pd(_mm256_set1_pd(weights[c * n + j]), u, sum[c]);
+        }
+        for (int c = 0; c < Kdim; ++c) _mm256_storeu_pd(acc + c * kBlock + q, sum[c]);
+    }
+}
+static_assert(kBlock % 4 == 0, "accumulate_tps_avx2 takes 4 queries at a time");
+
 const bool has_avx512 = simd_level() == SimdLevel::avx512;
+const bool has_avx2 = simd_level() == SimdLevel::avx2;
 #endif
+
+// One block of queries in the model's normalised coordinates, one array per axis:
+// (row - shift) / scale for its count rows (stride doubles apart), the last row
+// repeated to fill the block. Built per level (it took a third of a 22,500 x 6
+// evaluation as scalar divisions); a division rounds the same in any width, so the
+// coordinates are the same bits at every level.
+TPSCORE_INLINE void normalise_block_impl(const double* rows, std::int64_t stride, std::int64_t count,
+                                         const double* shift, double scale, double* __restrict qx,
+                                         double* __restrict qy, double* __restrict qz) {
+    const double sx = shift[0], sy = shift[1], sz = shift[2];
+    if (stride == 3) {
+#pragma omp simd
+        for (std::int64_t q = 0; q < count; ++q) {
+            qx[q] = (rows[3 * q] - sx) / scale;
+            qy[q] = (rows[3 * q + 1] - sy) / scale;
+            qz[q] = (rows[3 * q + 2] - sz) / scale;
+        }
+    } else {
+        for (std::int64_t q = 0; q < count; ++q) {
+            qx[q] = (rows[stride * q] - sx) / scale;
+            qy[q] = (rows[stride * q + 1] - sy) / scale;
+            qz[q] = (rows[stride * q + 2] - sz) / scale;
+        }
+    }
+    for (std::int64_t q = count; q < kBlock; ++q) {
+        qx[q] = qx[count - 1];
+        qy[q] = qy[count - 1];
+        qz[q] = qz[count - 1];
+    }
+}
+
+TPSCORE_DISPATCH(normalise_block,
+                 (const double* rows, std::int64_t stride, std::int64_t count, const double* shift, double scale,
+                  double* qx, double* qy, double* qz),
+                 (rows, stride, count, shift, scale, qx, qy, qz))
+
+// The block's sums (k rows of kBlock) written as count rows of out (stride doubles
+// apart), counting into not_finite the values that are not finite. Built per level
+// for the same reason.
+TPSCORE_INLINE void store_block_impl(const double* acc, std::int64_t k, std::int64_t count, double* out,
+                                     std::int64_t stride, std::int64_t* not_finite_count) {
+    // |value| <= DBL_MAX is false for infinities and NaN alike; a sum of flags keeps
+    // the loop free of branches.
+    std::int64_t not_finite = 0;
+    for (std::int64_t c = 0; c < k; ++c) {
+        const double* a = acc + c * kBlock;
+#pragma omp simd reduction(+ : not_finite)
+        for (std::int64_t q = 0; q < count; ++q) {
+            out[q * stride + c] = a[q];
+            not_finite += !(std::abs(a[q]) <= std::numeric_limits<double>::max());
+        }
+    }
+    *not_finite_count = not_finite;
+}
+
+TPSCORE_DISPATCH(store_block,
+                 (const double* acc, std::int64_t k, std::int64_t count, double* out, std::int64_t stride,
+                  std::int64_t* not_finite_count),
+                 (acc, k, count, out, stride, not_finite_count))
 
 // acc += sum_j w_j phi(|q - c_j|) for one block of queries, by the best loop this
 // CPU runs.
 void accumulate(RbfKernel kernel, double e2, const double* qx, const double* qy, const double* qz,
                 const double* cx, const double* cy, const double* cz, std::int64_t n, const double* weights,
                 std::int64_t k, double* acc) {
-#if TPSCORE_AVX512_TPS
+#if TPSCORE_HAND_WRITTEN_TPS
     if (kernel == RbfKernel::tps && has_avx512 && k <= 3) {
         switch (k) {
             case 1: accumulate_tps_avx512<1>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
             case 2: accumulate_tps_avx512<2>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
             default: accumulate_tps_avx512<3>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
+        }
+    }
+    if (kernel == RbfKernel::tps && has_avx2 && k <= 3) {
+        switch (k) {
+            case 1: accumulate_tps_avx2<1>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
+            case 2: accumulate_tps_avx2<2>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
+            default: accumulate_tps_avx2<3>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
         }
     }
 #endif
@@ -891,13 +1071,8 @@ std::int64_t rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool 
             for (std::int64_t b = begin; b < end; ++b) {
                 const std::int64_t first = b * kBlock;
                 const std::int64_t count = std::min(kBlock, m - first);
-                for (std::int64_t q = 0; q < kBlock; ++q) {
-                    // The last block is padded with copies of its last row.
-                    const std::int64_t row = first + std::min(q, count - 1);
-                    qx[q] = (queries(row, 0) - shift[0]) / scale;
-                    qy[q] = (queries(row, 1) - shift[1]) / scale;
-                    qz[q] = (queries(row, 2) - shift[2]) / scale;
-                }
+                normalise_block(queries.data() + first * queries.outerStride(), queries.outerStride(), count,
+                                shift.data(), scale, qx, qy, qz);
                 for (std::int64_t c = 0; c < k; ++c) {
                     double* a = acc.data() + c * kBlock;
                     const double a0 = affine(0, c), ax = affine(1, c), ay = affine(2, c),
@@ -907,12 +1082,12 @@ std::int64_t rbf_evaluate(const RbfModel& model, const PointsRef& queries, bool 
                 }
                 accumulate(model.kernel, e2, qx, qy, qz, model.centre_x.data(), model.centre_y.data(),
                            model.centre_z.data(), n, model.weights_normalised.data(), k, acc.data());
-                for (std::int64_t q = 0; q < count; ++q)
-                    for (std::int64_t c = 0; c < k; ++c) {
-                        const double value = acc[c * kBlock + q];
-                        out(first + q, c) = value;
-                        if (!std::isfinite(value)) overflow = std::min(overflow, first + q);
-                    }
+                std::int64_t not_finite = 0;
+                store_block(acc.data(), k, count, &out(first, 0), out.outerStride(), &not_finite);
+                if (not_finite > 0)
+                    for (std::int64_t q = 0; q < count; ++q)
+                        for (std::int64_t c = 0; c < k; ++c)
+                            if (!std::isfinite(acc[c * kBlock + q])) overflow = std::min(overflow, first + q);
             }
         }
         for (std::int64_t seen = first_overflow.load(); overflow < seen;)
