@@ -36,6 +36,7 @@ import numpy as np
 import psutil
 
 from shared_data import shared_dir
+from report import write_report
 
 from tpscore import batch
 from tpscore.batch import Job, Progress
@@ -234,9 +235,7 @@ def main(argv=None) -> int:
               f"{samples[-1][0] - samples[0][0]} jobs. Load average at the end {os.getloadavg()[0]:.1f}."]
 
     table = "\n".join(lines)
-    print(table)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "batch_throughput.md").write_text(table + "\n")
+    write_report(out / "batch_throughput.md", table)
     return 0
 
 

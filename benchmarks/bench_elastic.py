@@ -25,6 +25,7 @@ import pytest
 import scipy.sparse.linalg as spla
 
 from shared_data import shared_dir
+from report import write_report
 from tpscore.elastic import ElasticFace, ElasticOptions
 from tpscore.mesh import height_field_remesh
 from tpscore.spatial import MeshSurface
@@ -164,9 +165,8 @@ def test_elastic_fidelity_table(model, source):
         f"| storage, parameters only (basis recomputed from the neutral) | {storage['ratio_parameters_only']:.4f} |",
     ]
     text = "\n".join(lines)
-    print("\n" + text)
-    OUTPUT_DIR.mkdir(parents=True, exist_ok=True)
-    (OUTPUT_DIR / "elastic.md").write_text(text + "\n", encoding="utf-8")
+    print()
+    write_report(OUTPUT_DIR / "elastic.md", text)
     # The model must explain most of the motion on average, at the source and cloned.
     assert fit_ratios.mean() < 0.6
     assert np.mean(clone_ratios) < 0.8

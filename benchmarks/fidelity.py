@@ -38,6 +38,7 @@ import numpy as np
 from texture_ablations import ABLATIONS
 from tpscore.batch import TransferJob
 from shared_data import shared_dir
+from report import write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = Path(__file__).resolve().parent
@@ -322,9 +323,7 @@ def main(argv=None) -> int:
         lines += ["", *registration_alone(tpscore, score_with_sidecars, faces, scans, parse_subjects(args.registration),
                                           args.aus)]
     table = "\n".join(lines)
-    print(table)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / f"{stem}.md").write_text(table + "\n")
+    write_report(out / f"{stem}.md", table)
     pairs = [dict(variant=variant, au=au, **{k: (v.item() if hasattr(v, "item") else v) for k, v in r.items()})
              for (variant, au), rs in results.items() for r in rs]
     (out / f"{stem}.json").write_text(json.dumps(dict(rows=rows, pairs=pairs), indent=1))

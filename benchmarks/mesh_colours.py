@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from shared_data import REPOSITORY, shared_dir
+from report import write_report
 
 REQUESTS = {"LFAU_25_0": "25", "E_SURPRISE_0": "surprise", "LFAU_12_0": "12", "UFAU_2_0": "2"}
 
@@ -115,9 +116,7 @@ def main(argv=None) -> int:
         rows.append(f"| {kind} | {np.mean(ratios[kind]):.3f} | {np.mean(seconds[kind]):.2f} | "
                     f"{texture_warnings[kind]} |")
     table = "\n".join([f"{args.code} ({request}), pairs s -> s + 1 for s = 0..{args.pairs - 1}", "", *rows])
-    print(table)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "mesh_colours.md").write_text(table + "\n")
+    write_report(args.out / "mesh_colours.md", table)
     return 0
 
 

@@ -43,6 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fidelity import AU_CODES, ensure_scans, parse_subjects, scan_path  # noqa: E402
 from shared_data import load_module, shared_dir  # noqa: E402
+from report import write_report  # noqa: E402
 
 AUS = ("1", "2", "4", "12", "14", "15", "17", "20")
 #: The elastic model's muscles for each AU (tpscore/data/elastic_muscles.json). Its set
@@ -180,8 +181,7 @@ def main(argv=None) -> int:
     if args.report:
         parts = [json.loads(Path(p).read_text()) for p in args.report]
         table = report(parts)
-        print(table)
-        (out / f"{args.name}.md").write_text(table + "\n")
+        write_report(out / f"{args.name}.md", table)
         return 0
     shared = shared_dir()
     if shared is None:
@@ -248,8 +248,7 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{args.name}.json").write_text(json.dumps(part, indent=1, default=float))
     table = report([part])
-    print(table)
-    (out / f"{args.name}.md").write_text(table + "\n")
+    write_report(out / f"{args.name}.md", table)
     return 0
 
 

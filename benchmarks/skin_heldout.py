@@ -32,6 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fidelity import ensure_scans, parse_subjects, scan_path  # noqa: E402
 from shared_data import shared_dir  # noqa: E402
+from report import write_report  # noqa: E402
 
 SCAN_ARGS = ["--seed-offset", "1000"]
 RUNS = (("rest", None, 0.0), ("AU12 1", {"12": 1.0}, 0.0), ("AU4 1", {"4": 1.0}, 0.0), ("jaw 15 deg", None, 15.0))
@@ -90,9 +91,7 @@ def main(argv=None) -> int:
     for s in subjects:
         lines.append(f"| {s} | " + " | ".join(subject_row(scans, s)) + " |")
     table = "\n".join(lines)
-    print(table)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "skin_heldout.md").write_text(table + "\n")
+    write_report(out / "skin_heldout.md", table)
     return 0
 
 

@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fidelity import AU_CODES, ensure_scans, parse_subjects, scan_path  # noqa: E402
 from shared_data import load_module, shared_dir  # noqa: E402
+from report import write_report  # noqa: E402
 
 CORNERS = (landmark_index("Left mouth corner"), landmark_index("Right mouth corner"))
 
@@ -102,10 +103,8 @@ def main(argv=None) -> int:
     ensure_scans(shared, scans, subjects)
     rows = [row for s in subjects for row in corner_travel(scorer, faces, scans, s, args.levels)]
     table = report(rows, args.subjects, args.levels)
-    print(table)
-    out.mkdir(parents=True, exist_ok=True)
+    write_report(out / "skin_smile.md", table)
     (out / "skin_smile.json").write_text(json.dumps(rows, indent=1))
-    (out / "skin_smile.md").write_text(table + "\n")
     return 0
 
 

@@ -26,6 +26,7 @@ import numpy as np
 from tpscore.physics import SkinModel
 from tpscore.physics.system import INTEGRATORS
 from tpscore.showcase.datasets import skin_template
+from report import write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 SIMULATED_S = 0.15
@@ -87,9 +88,7 @@ def main() -> int:
                      f"stable_step) | {cells[0]} | {cells[1]} | {1e3 * np.mean(per_step):.1f} ms |")
         print(lines[-1], flush=True)
     text = "\n".join(lines)
-    out = ROOT / "bench-output"
-    out.mkdir(exist_ok=True)
-    (out / "skin_stability.md").write_text(text + "\n")
+    write_report(ROOT / "bench-output" / "skin_stability.md", text)
     print(text)
     return 0
 
