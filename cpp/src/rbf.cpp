@@ -370,6 +370,17 @@ static_assert(kBlock % 4 == 0, "accumulate_tps_avx2 takes 4 queries at a time");
 
 const bool has_avx512 = simd_level() == SimdLevel::avx512;
 const bool has_avx2 = simd_level() == SimdLevel::avx2;
+
+// The hand-written tps loop of this CPU's level (AVX-512 or AVX2).
+template <int Kdim>
+void accumulate_tps_by_hand(const double* qx, const double* qy, const double* qz, const double* cx,
+                            const double* cy, const double* cz, std::int64_t n, const double* weights,
+                            double* acc) {
+    if (has_avx512)
+        accumulate_tps_avx512<Kdim>(qx, qy, qz, cx, cy, cz, n, weights, acc);
+    else
+        accumulate_tps_avx2<Kdim>(qx, qy, qz, cx, cy, cz, n, weights, acc);
+}
 #endif
 
 // One block of queries in the model's normalised coordinates, one array per axis:
@@ -377,24 +388,29 @@ const bool has_avx2 = simd_level() == SimdLevel::avx2;
 // repeated to fill the block. Built per level (it took a third of a 22,500 x 6
 // evaluation as scalar divisions); a division rounds the same in any width, so the
 // coordinates are the same bits at every level.
-TPSCORE_INLINE void normalise_block_impl(const double* rows, std::int64_t stride, std::int64_t count,
-                                         const double* shift, double scale, double* __restrict qx,
-                                         double* __restrict qy, double* __restrict qz) {
+// Stride > 0 fixes the rows' stride at compile time (3, contiguous points: the loads
+// vectorise as shuffles, not gathers); 0 takes `stride` as given.
+template <std::int64_t Stride>
+TPSCORE_INLINE void normalise_rows(const double* rows, std::int64_t stride, std::int64_t count,
+                                   const double* shift, double scale, double* __restrict qx,
+                                   double* __restrict qy, double* __restrict qz) {
+    const std::int64_t step = Stride > 0 ? Stride : stride;
     const double sx = shift[0], sy = shift[1], sz = shift[2];
-    if (stride == 3) {
 #pragma omp simd
-        for (std::int64_t q = 0; q < count; ++q) {
-            qx[q] = (rows[3 * q] - sx) / scale;
-            qy[q] = (rows[3 * q + 1] - sy) / scale;
-            qz[q] = (rows[3 * q + 2] - sz) / scale;
-        }
-    } else {
-        for (std::int64_t q = 0; q < count; ++q) {
-            qx[q] = (rows[stride * q] - sx) / scale;
-            qy[q] = (rows[stride * q + 1] - sy) / scale;
-            qz[q] = (rows[stride * q + 2] - sz) / scale;
-        }
+    for (std::int64_t q = 0; q < count; ++q) {
+        qx[q] = (rows[step * q] - sx) / scale;
+        qy[q] = (rows[step * q + 1] - sy) / scale;
+        qz[q] = (rows[step * q + 2] - sz) / scale;
     }
+}
+
+TPSCORE_INLINE void normalise_block_impl(const double* rows, std::int64_t stride, std::int64_t count,
+                                         const double* shift, double scale, double* qx, double* qy,
+                                         double* qz) {
+    if (stride == 3)
+        normalise_rows<3>(rows, stride, count, shift, scale, qx, qy, qz);
+    else
+        normalise_rows<0>(rows, stride, count, shift, scale, qx, qy, qz);
     for (std::int64_t q = count; q < kBlock; ++q) {
         qx[q] = qx[count - 1];
         qy[q] = qy[count - 1];
@@ -437,18 +453,11 @@ void accumulate(RbfKernel kernel, double e2, const double* qx, const double* qy,
                 const double* cx, const double* cy, const double* cz, std::int64_t n, const double* weights,
                 std::int64_t k, double* acc) {
 #if TPSCORE_HAND_WRITTEN_TPS
-    if (kernel == RbfKernel::tps && has_avx512 && k <= 3) {
+    if (kernel == RbfKernel::tps && (has_avx512 || has_avx2) && k <= 3) {
         switch (k) {
-            case 1: accumulate_tps_avx512<1>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
-            case 2: accumulate_tps_avx512<2>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
-            default: accumulate_tps_avx512<3>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
-        }
-    }
-    if (kernel == RbfKernel::tps && has_avx2 && k <= 3) {
-        switch (k) {
-            case 1: accumulate_tps_avx2<1>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
-            case 2: accumulate_tps_avx2<2>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
-            default: accumulate_tps_avx2<3>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
+            case 1: accumulate_tps_by_hand<1>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
+            case 2: accumulate_tps_by_hand<2>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
+            default: accumulate_tps_by_hand<3>(qx, qy, qz, cx, cy, cz, n, weights, acc); return;
         }
     }
 #endif
