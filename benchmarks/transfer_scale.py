@@ -33,7 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fidelity import ensure_scans, parse_subjects, scan_path, shared_dir  # noqa: E402
 
 import tpscore  # noqa: E402
-from tpscore.expression.modelling import align_expressive  # noqa: E402
+from tpscore.expression.action_units import default_library  # noqa: E402
+from tpscore.expression.modelling import align_expressive, still_weight  # noqa: E402
 from tpscore.expression.registration import register_surfaces  # noqa: E402
 from tpscore.expression.texture import track_texture  # noqa: E402
 from tpscore.face.average_face import load_average_face  # noqa: E402
@@ -57,7 +58,9 @@ def one_pair(scans: Path, source: int, target: int, side: int) -> dict:
     # the registration alone, as the transfer runs it (texture matches given)
     reference = load_average_face().as_normalised_face()
     neutral = normalise_face(grids[0], reference.landmarks)
-    expressive = align_expressive(neutral, grids[0], grids[1], ["lower"])
+    library = default_library()
+    still = still_weight(grids[1], library.parse("12"), library, reference.landmarks)
+    expressive = align_expressive(neutral, grids[0], grids[1], still)
     texture = track_texture(neutral.grid, expressive.grid)
     surface = expressive.surface()
     begin = time.perf_counter()
