@@ -214,3 +214,31 @@ def test_refined_matches_follow_a_warp_and_still_find_the_slide():
     got = field(neutral.points.reshape(-1, 3)).reshape(neutral.points.shape)
     moving = np.linalg.norm(true_motion(neutral.points), axis=-1) > 0.5
     assert np.sqrt(np.mean(np.sum((got - true_motion(neutral.points))[moving] ** 2, axis=-1))) < 0.3
+
+
+def test_refined_matches_in_regions_are_made_there_only_and_at_full_resolution():
+    neutral, expressive = textured_pair()
+    first = track_texture(neutral, expressive)
+    guess = 0.5 * true_motion(neutral.points)
+    x, y = neutral.points[..., 0], neutral.points[..., 1]
+    regions = [np.hypot(x + 15.0, y) < 10.0, np.hypot(x - 15.0, y - 5.0) < 8.0]
+    refined = first.refined(guess, regions)
+    used = refined.confidence > 0
+    within = regions[0] | regions[1]
+    assert not used[~within].any()
+    assert np.isnan(refined.targets[~within]).all()
+    assert used[within].mean() > 0.7
+    error = np.linalg.norm(refined.targets[used] - neutral.points[used] - true_motion(neutral.points[used]), axis=1)
+    assert np.median(error) < 0.1, np.median(error)
+    # the whole face's refined flow, at half the resolution, is further off there
+    whole = first.refined(guess)
+    both = used & (whole.confidence > 0)
+    whole_error = np.linalg.norm(whole.targets[both] - neutral.points[both] - true_motion(neutral.points[both]),
+                                 axis=1)
+    region_error = np.linalg.norm(refined.targets[both] - neutral.points[both] - true_motion(neutral.points[both]),
+                                  axis=1)
+    assert np.median(region_error) < 0.75 * np.median(whole_error), (np.median(region_error), np.median(whole_error))
+    # a region with no vertex matches nothing: the matches come back unchanged
+    assert first.refined(guess, [np.zeros(x.shape, dtype=bool)]) is first
+    with pytest.raises(ValueError, match="regions"):
+        first.refined(guess, [np.ones((3, 3), dtype=bool)])

@@ -271,6 +271,8 @@ def register_cut(neutral, expressive, openings: list[Opening], register, texture
         closure[opening.name] = np.where(np.isfinite(seen[opening.name].top),
                                          (opening.top - seen[opening.name].top) / height, 1.0)
     neutral_xy = _xy_of(grid)
+    # where each moved eye's corrections reach: the texture is matched again there only
+    lid_windows = [opening.sides(grid.points, LOCAL_REACH)[1] > 0 for opening in eyes]
     fields = []
     for side, weight, keep in zip(("top", "bottom"), weights, landmark_weight):
         landmarks = np.where((keep > 0.5)[:, None], neutral.landmarks, np.nan)
@@ -281,8 +283,9 @@ def register_cut(neutral, expressive, openings: list[Opening], register, texture
             if texture is not None:
                 # The flow found again with the expressive image warped back by this
                 # side's motion: a lid's skin travels farther than the flow finds alone.
-                current = _Corrected(motion, corrections)(grid.points.reshape(-1, 3)).reshape(grid.points.shape)
-                side_texture = texture.refined(current)
+                current = _Corrected(motion, corrections)
+                current = current(grid.points.reshape(-1, 3)).reshape(grid.points.shape)
+                side_texture = texture.refined(current, lid_windows)
                 side_targets = side_texture.targets[grid.mask]
                 side_weights = texture_weight * side_texture.confidence[grid.mask]
             corrections = _lid_corrections(eyes, seen, side, neutral, neutral_xy, expressive, surface, motion,

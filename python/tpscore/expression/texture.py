@@ -19,7 +19,10 @@ optical flow and lifts the flow to 3D correspondences, which the dense registrat
    (a Gaussian of ``shading_sigma_mm``), divided by their local contrast, keep the
    skin's pattern and drop shading, exposure and white balance.
 3. **Flow.** OpenCV's DIS optical flow (Kroeger et al. 2016) from the neutral to the
-   expressive image and back.
+   expressive image and back, at half the plane's resolution over the whole face. A
+   match found again in a few regions (a closing eye's lids) is found at full
+   resolution over a box around each: there patches half as wide follow a lower lid's
+   small slide beside the upper lid's far larger motion.
 4. **Confidence.** A match is kept where the flow is consistent (forward then
    backward returns within ``consistency_px``), starts and lands on the surface away
    from its rims, and is weighted by the strength of the texture under it (the smaller
@@ -171,7 +174,7 @@ class TextureMatches:
         state["_tracker"] = None
         return state
 
-    def refined(self, displacement) -> "TextureMatches":
+    def refined(self, displacement, regions=None) -> "TextureMatches":
         """The matches found again with the expressive image warped back by a motion
         estimate, so that the flow only has to find what the estimate missed (large,
         deforming motions fail the consistency check when the flow must find them alone).
@@ -181,6 +184,11 @@ class TextureMatches:
         displacement : (H, W, 3) array_like
             The estimated motion of each vertex of the neutral grid (mm; NaN where
             unknown).
+        regions : sequence of (H, W) bool array_like, optional
+            Parts of the neutral grid (each eye's window, say) where the matches are
+            wanted: each is matched on its own, at the image plane's full resolution,
+            over the box around it (:data:`REGION_MARGIN_MM` wider), and no match is
+            made elsewhere. Default: the whole face at the flow's usual resolution.
 
         Returns
         -------
@@ -188,8 +196,13 @@ class TextureMatches:
         """
         if self._tracker is None:
             raise ValueError("these matches were not made by track_texture and cannot be refined")
+        if regions is not None:
+            shape = self.confidence.shape
+            regions = [np.asarray(region, dtype=bool) for region in regions]
+            if any(region.shape != shape for region in regions):
+                raise ValueError(f"regions must each have the grid's shape {shape}")
         start = time.perf_counter()
-        refined = self._tracker.match(np.asarray(displacement, dtype=np.float64))
+        refined = self._tracker.match(np.asarray(displacement, dtype=np.float64), regions)
         if refined is None:
             return self
         refined.seconds = time.perf_counter() - start
@@ -320,50 +333,46 @@ class _Tracker:
         # directions; flat skin tends to 0
         self.strength_weight = strength / (strength + _STRENGTH_HALF)
 
-    def _warp(self, displacement: np.ndarray) -> np.ndarray:
-        """(h, w, 2) float32 pixel positions where each neutral pixel's skin is expected
-        in the expressive image: its surface point moved by the per-vertex displacement
-        (interpolated over the neutral grid's triangles; identity off the surface)."""
+    def _warp(self, displacement: np.ndarray, box) -> np.ndarray:
+        """(h, w, 2) float32 pixel positions, over a box of the plane (rows, then columns,
+        end excluded), where each neutral pixel's skin is expected in the expressive
+        image: its surface point moved by the per-vertex displacement (interpolated over
+        the neutral grid's triangles; identity off the surface)."""
+        row0, row1, col0, col1 = box
         view = self.views[0]
         mesh_index = np.flatnonzero(self.valid)
         moved = interpolate_pixels(np.nan_to_num(displacement.reshape(-1, 3)[mesh_index]),
-                                   self.neutral.mesh().faces, view.triangle, view.barycentric)
-        rows, cols = np.mgrid[0:self.plane.height, 0:self.plane.width].astype(np.float32)
+                                   self.neutral.mesh().faces, view.triangle[row0:row1, col0:col1],
+                                   view.barycentric[row0:row1, col0:col1])
+        rows, cols = np.mgrid[row0:row1, col0:col1].astype(np.float32)
         where = np.stack([cols, rows], axis=-1)
-        seen = view.valid
-        where[seen] = self.plane.pixels(view.points[seen] + moved[seen]).astype(np.float32)
+        seen = view.valid[row0:row1, col0:col1]
+        where[seen] = self.plane.pixels(view.points[row0:row1, col0:col1][seen] + moved[seen]).astype(np.float32)
         return where
 
-    def match(self, displacement=None) -> TextureMatches | None:
-        """Flow both ways and lift the consistent matches; None when too few are."""
+    def match(self, displacement=None, regions=None) -> TextureMatches | None:
+        """Flow both ways and lift the consistent matches; None when too few are. With
+        ``regions`` (grid masks), only their vertices are matched, each region over its
+        own box at full resolution."""
 
         start = time.perf_counter()
-        expressive, inside = self.expressive_pattern, self.expressive_inside
-        warp = None
-        if displacement is not None:
-            warp = self._warp(displacement)
-            expressive = cv2.remap(expressive, warp, None, cv2.INTER_LINEAR, borderValue=0)
-            inside = cv2.remap(inside, warp, None, cv2.INTER_LINEAR, borderValue=0)
-        expressive = _eight_bit(expressive)
-
-        def flow(first, second):
-            return cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(first, second, None)
-
-        # the two directions on two threads (OpenCV releases the GIL; each flow uses
-        # OpenCV's own threads only in parts)
-        forward, backward = side_by_side(lambda: flow(self.neutral_pattern, expressive),
-                                         lambda: flow(expressive, self.neutral_pattern))
-        step = bilinear(forward, self.begin[:, 0], self.begin[:, 1])
-        land = self.begin + step
-        back = bilinear(backward, land[:, 0], land[:, 1])
-        consistency = np.linalg.norm(step + back, axis=1)
-        matched = (consistency < self.options.consistency_px) & self.begin_inside \
-            & (bilinear(inside, land[:, 0], land[:, 1]) > 0.999)
-        matched_fraction = float(matched.mean()) if len(matched) else 0.0
+        if regions is None:
+            boxes = [(np.arange(len(self.begin)), (0, self.plane.height, 0, self.plane.width), _FINEST_SCALE)]
+        else:
+            boxes = [self._box(region) for region in regions]
+        land = self.begin.copy()
+        consistency = np.full(len(self.begin), np.inf)
+        landed_inside = np.zeros(len(self.begin), dtype=bool)
+        for chosen, box, finest_scale in boxes:
+            if len(chosen) == 0:
+                continue
+            land[chosen], consistency[chosen], landed_inside[chosen] = self._match_box(
+                chosen, box, finest_scale, displacement)
+        considered = np.isfinite(consistency)
+        matched = (consistency < self.options.consistency_px) & self.begin_inside & landed_inside
+        matched_fraction = float(matched.sum() / considered.sum()) if considered.any() else 0.0
         if matched_fraction < self.options.min_matched_fraction:
             return None
-        if warp is not None:
-            land = bilinear(warp, land[:, 0], land[:, 1]).astype(np.float64)
         # a match lands inside the eroded surface, so the four pixels around it are
         # all on the surface (none is NaN)
         landed = bilinear(self.views[1].points, land[matched, 0], land[matched, 1])
@@ -374,6 +383,68 @@ class _Tracker:
         confidence[self.valid] = np.where(matched, self.strength_weight, 0.0)
         return TextureMatches(targets.reshape(shape), confidence.reshape(shape[:2]), matched_fraction,
                               time.perf_counter() - start, self)
+
+    def _match_box(self, chosen, box, finest_scale: int, displacement=None):
+        """The flow over one box of the plane for the vertices ``chosen`` (indices into
+        ``begin``): where each lands in the expressive image (plane pixels), its
+        forward-backward error, and whether it lands inside the expressive surface.
+        With a displacement, the expressive image is first warped back by it."""
+        row0, row1, col0, col1 = box
+        expressive = self.expressive_pattern[row0:row1, col0:col1]
+        inside = self.expressive_inside[row0:row1, col0:col1]
+        if displacement is not None:
+            warp = self._warp(displacement, box)
+            expressive = cv2.remap(self.expressive_pattern, warp, None, cv2.INTER_LINEAR, borderValue=0)
+            inside = cv2.remap(self.expressive_inside, warp, None, cv2.INTER_LINEAR, borderValue=0)
+        forward, backward = _flow_both_ways(np.ascontiguousarray(self.neutral_pattern[row0:row1, col0:col1]),
+                                            _eight_bit(expressive), finest_scale)
+        begin = self.begin[chosen] - (col0, row0)
+        land = begin + bilinear(forward, begin[:, 0], begin[:, 1])
+        consistency = np.linalg.norm(land - begin + bilinear(backward, land[:, 0], land[:, 1]), axis=1)
+        landed_inside = bilinear(inside, land[:, 0], land[:, 1]) > 0.999
+        if displacement is not None:
+            land = bilinear(warp, land[:, 0], land[:, 1]).astype(np.float64)
+        else:
+            land = land + (col0, row0)
+        return land, consistency, landed_inside
+
+    def _box(self, region: np.ndarray):
+        """A region's valid vertices (indices into ``begin``), the pixel box (rows, then
+        columns, end excluded) around them with a margin, and the flow's finest scale
+        there (the full resolution)."""
+        chosen = np.flatnonzero(region.reshape(-1)[self.valid])
+        if len(chosen) == 0:
+            return chosen, (0, 0, 0, 0), 0
+        margin = REGION_MARGIN_MM / self.plane.pixel_mm
+        low = np.floor(self.begin[chosen].min(axis=0) - margin).astype(int)
+        high = np.ceil(self.begin[chosen].max(axis=0) + margin).astype(int) + 1
+        col0, row0 = np.maximum(low, 0)
+        col1, row1 = np.minimum(high, (self.plane.width, self.plane.height))
+        return chosen, (int(row0), int(row1), int(col0), int(col1)), 0
+
+
+# The flow's finest pyramid level over the whole face: half the plane's resolution
+# (DIS's medium preset), at a quarter of the full resolution's cost (36 against 139 ms
+# a flow on one thread). A region is matched at full resolution (AU43 over the
+# development pairs: 0.464 -> 0.435, benchmarks/FIDELITY.md).
+_FINEST_SCALE = 1
+#: How far (mm) a region's box reaches beyond its vertices, so that the flow's patches
+#: and pyramid see the skin around them.
+REGION_MARGIN_MM = 8.0
+
+
+def _flow_both_ways(first: np.ndarray, second: np.ndarray, finest_scale: int):
+    """DIS optical flow (medium preset, at this finest pyramid level) from the first
+    8-bit image to the second and back."""
+
+    def flow(one, other):
+        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        dis.setFinestScale(finest_scale)
+        return dis.calc(one, other, None)
+
+    # the two directions on two threads (OpenCV releases the GIL; each flow uses
+    # OpenCV's own threads only in parts)
+    return side_by_side(lambda: flow(first, second), lambda: flow(second, first))
 
 
 def track_texture(neutral: FaceGrid, expressive: FaceGrid,
