@@ -242,3 +242,28 @@ def test_refined_matches_in_regions_are_made_there_only_and_at_full_resolution()
     assert first.refined(guess, [np.zeros(x.shape, dtype=bool)]) is first
     with pytest.raises(ValueError, match="regions"):
         first.refined(guess, [np.ones((3, 3), dtype=bool)])
+
+
+def test_fine_regions_are_matched_at_full_resolution_and_nothing_else_changes():
+    neutral, expressive = textured_pair()
+    x, y = neutral.points[..., 0], neutral.points[..., 1]
+    eye = np.hypot(x + 15.0, y) < 10.0
+    plain = track_texture(neutral, expressive)
+    fine = track_texture(neutral, expressive, fine_regions=[eye])
+    # outside the region the matches are the plain ones, bit for bit
+    assert np.array_equal(plain.targets[~eye], fine.targets[~eye], equal_nan=True)
+    assert np.array_equal(plain.confidence[~eye], fine.confidence[~eye])
+    both = eye & (plain.confidence > 0) & (fine.confidence > 0)
+    assert both.sum() > 0.7 * eye.sum()
+
+    def error(matches):
+        return np.median(np.linalg.norm(matches.targets[both] - neutral.points[both]
+                                        - true_motion(neutral.points[both]), axis=1))
+
+    assert error(fine) < 0.75 * error(plain), (error(fine), error(plain))
+    # refined over the whole face, the region is matched at full resolution again
+    guess = 0.5 * true_motion(neutral.points)
+    assert np.array_equal(fine.refined(guess).targets[eye], fine.refined(guess, [eye]).targets[eye],
+                          equal_nan=True)
+    with pytest.raises(ValueError, match="fine_regions"):
+        track_texture(neutral, expressive, fine_regions=[np.ones((4, 4), dtype=bool)])

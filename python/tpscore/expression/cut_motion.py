@@ -32,7 +32,7 @@ from ..lattice import BSplineLattice, LatticeSystem, symmetric_blocks
 from ..mesh import face_normals
 from ..spatial import MeshSurface
 
-__all__ = ["CutMotion", "LocalCorrection", "moved_openings", "register_cut", "fit_local_correction", "opening_pairs",
+__all__ = ["CutMotion", "LocalCorrection", "moved_openings", "eye_windows", "register_cut", "fit_local_correction", "opening_pairs",
            "OPENED_MM", "OPENED_SHARE", "LOCAL_SPACING_MM", "LOCAL_REACH"]
 
 #: An opening has moved when how far it is open (:meth:`Opening.open_mm`) in the
@@ -235,6 +235,13 @@ def _xy_of(grid):
     return grid_xy(grid.points, grid.mask) if grid.mask.any() else None
 
 
+def eye_windows(openings, grid) -> list[np.ndarray]:
+    """Each eye's window among the openings, as a mask of the grid: where a moved eye's
+    local corrections reach (:data:`LOCAL_REACH` times its window), and where its
+    texture is matched at full resolution."""
+    return [opening.sides(grid.points, LOCAL_REACH)[1] > 0 for opening in openings if opening.name != "mouth"]
+
+
 def _side_weights(openings, points) -> tuple[np.ndarray, np.ndarray]:
     """Each point's weight as a data point of the upper and of the lower registration:
     0 on the other side of an opening's line inside its window."""
@@ -271,8 +278,7 @@ def register_cut(neutral, expressive, openings: list[Opening], register, texture
         closure[opening.name] = np.where(np.isfinite(seen[opening.name].top),
                                          (opening.top - seen[opening.name].top) / height, 1.0)
     neutral_xy = _xy_of(grid)
-    # where each moved eye's corrections reach: the texture is matched again there only
-    lid_windows = [opening.sides(grid.points, LOCAL_REACH)[1] > 0 for opening in eyes]
+    lid_windows = eye_windows(eyes, grid)
     fields = []
     for side, weight, keep in zip(("top", "bottom"), weights, landmark_weight):
         landmarks = np.where((keep > 0.5)[:, None], neutral.landmarks, np.nan)

@@ -26,7 +26,7 @@ from ..face.openings import find_openings
 from ..face.regions import HALVES, region_weight
 from .action_units import ActionUnit, ActionUnitLibrary, Activation, WHOLE_FACE
 from .alignment import ANCHOR_PARTS, Realigned, align_rigid, fit_mirror_symmetry, residual_rigid_motion, stable_weight
-from .cut_motion import CutMotion, moved_openings, register_cut
+from .cut_motion import CutMotion, eye_windows, moved_openings, register_cut
 from .mirror import Coverage, MirroredMotion
 from .registration import DenseMotion, MotionOptions, RegistrationGrid, prepare_registration, register_surfaces
 from .texture import TextureOptions, TextureWarning, track_texture
@@ -213,7 +213,8 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
         # the expressive surface is built while the texture is tracked
         surface = second_thread.submit(source_expressive.surface)
         if source_neutral.grid.image is not None or source_expressive.grid.image is not None:
-            texture = track_texture(source_neutral.grid, source_expressive.grid, texture_options)
+            texture = track_texture(source_neutral.grid, source_expressive.grid, texture_options,
+                                    eye_windows(openings(source_neutral).values(), source_neutral.grid))
         else:
             warnings.warn("neither source scan has a colour image: the motion comes from the geometry "
                           "alone, which follows the skin less closely (give each scan its image, a "

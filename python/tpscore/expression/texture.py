@@ -19,10 +19,10 @@ optical flow and lifts the flow to 3D correspondences, which the dense registrat
    (a Gaussian of ``shading_sigma_mm``), divided by their local contrast, keep the
    skin's pattern and drop shading, exposure and white balance.
 3. **Flow.** OpenCV's DIS optical flow (Kroeger et al. 2016) from the neutral to the
-   expressive image and back, at half the plane's resolution over the whole face. A
-   match found again in a few regions (a closing eye's lids) is found at full
-   resolution over a box around each: there patches half as wide follow a lower lid's
-   small slide beside the upper lid's far larger motion.
+   expressive image and back, at half the plane's resolution over the whole face, and
+   again at full resolution over a box around each of the caller's fine regions (the
+   eyes): there patches half as wide follow a lower lid's small slide beside the upper
+   lid's far larger motion.
 4. **Confidence.** A match is kept where the flow is consistent (forward then
    backward returns within ``consistency_px``), starts and lands on the surface away
    from its rims, and is weighted by the strength of the texture under it (the smaller
@@ -319,7 +319,7 @@ class _Tracker:
     """The two scans' views and patterns in one plane, ready to be matched (again)."""
 
     def __init__(self, neutral: FaceGrid, plane: TexturePlane, views, patterns, strength_image: np.ndarray,
-                 options: TextureOptions):
+                 options: TextureOptions, fine_regions=()):
         self.neutral, self.plane, self.views, self.options = neutral, plane, views, options
         self.neutral_pattern = _eight_bit(patterns[0])
         self.expressive_pattern = patterns[1]
@@ -332,6 +332,7 @@ class _Tracker:
         # a pattern of unit local contrast has strength ~0.02 where it is textured in both
         # directions; flat skin tends to 0
         self.strength_weight = strength / (strength + _STRENGTH_HALF)
+        self.fine_boxes = [self._box(region) for region in fine_regions]
 
     def _warp(self, displacement: np.ndarray, box) -> np.ndarray:
         """(h, w, 2) float32 pixel positions, over a box of the plane (rows, then columns,
@@ -357,7 +358,9 @@ class _Tracker:
 
         start = time.perf_counter()
         if regions is None:
-            boxes = [(np.arange(len(self.begin)), (0, self.plane.height, 0, self.plane.width), _FINEST_SCALE)]
+            # the whole face, then the fine regions again over it
+            boxes = [(np.arange(len(self.begin)), (0, self.plane.height, 0, self.plane.width), _FINEST_SCALE),
+                     *self.fine_boxes]
         else:
             boxes = [self._box(region) for region in regions]
         land = self.begin.copy()
@@ -425,8 +428,8 @@ class _Tracker:
 
 # The flow's finest pyramid level over the whole face: half the plane's resolution
 # (DIS's medium preset), at a quarter of the full resolution's cost (36 against 139 ms
-# a flow on one thread). A region is matched at full resolution (AU43 over the
-# development pairs: 0.464 -> 0.435, benchmarks/FIDELITY.md).
+# a flow on one thread). Fine regions are matched at full resolution
+# (benchmarks/FIDELITY.md: AU43 0.464 -> 0.425 with the eyes).
 _FINEST_SCALE = 1
 #: How far (mm) a region's box reaches beyond its vertices, so that the flow's patches
 #: and pyramid see the skin around them.
@@ -447,8 +450,8 @@ def _flow_both_ways(first: np.ndarray, second: np.ndarray, finest_scale: int):
     return side_by_side(lambda: flow(first, second), lambda: flow(second, first))
 
 
-def track_texture(neutral: FaceGrid, expressive: FaceGrid,
-                  options: TextureOptions = TextureOptions()) -> TextureMatches | None:
+def track_texture(neutral: FaceGrid, expressive: FaceGrid, options: TextureOptions = TextureOptions(),
+                  fine_regions=()) -> TextureMatches | None:
     """Match each vertex of a neutral grid to the expressive scan by its skin texture.
 
     Parameters
@@ -457,6 +460,10 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid,
         Two scans of one person in one frame (the expressive one aligned rigidly onto the
         neutral one), each with its colour image.
     options : TextureOptions
+    fine_regions : sequence of (H, W) bool array_like
+        Parts of the neutral grid (the eyes, say) matched at the image plane's full
+        resolution, each over a box around it, rather than at half resolution with the
+        rest of the face; so again whenever the matches are refined over the whole face.
 
     Returns
     -------
@@ -493,8 +500,12 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid,
                           f"levels rms, at least {_MIN_DETAIL_GREY} needed): the motion comes from the "
                           "geometry alone", TextureWarning, stacklevel=2)
             return None
+    shape = neutral.points.shape[:2]
+    fine_regions = [np.asarray(region, dtype=bool) for region in fine_regions]
+    if any(region.shape != shape for region in fine_regions):
+        raise ValueError(f"fine_regions must each have the neutral grid's shape {shape}")
     tracker = _Tracker(neutral, plane, [look.view for look in looks], [look.pattern for look in looks],
-                       looks[0].strength, options)
+                       looks[0].strength, options, fine_regions)
     matches = tracker.match()
     if matches is None:
         warnings.warn(f"texture tracking matched less than {100 * options.min_matched_fraction:.0f} % of the "
