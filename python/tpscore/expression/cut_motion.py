@@ -32,8 +32,8 @@ from ..lattice import BSplineLattice, LatticeSystem, symmetric_blocks
 from ..mesh import face_normals
 from ..spatial import MeshSurface
 
-__all__ = ["CutMotion", "LocalCorrection", "moved_openings", "eye_windows", "register_cut", "fit_local_correction", "opening_pairs",
-           "OPENED_MM", "OPENED_SHARE", "LOCAL_SPACING_MM", "LOCAL_REACH"]
+__all__ = ["CutMotion", "LocalCorrection", "moved_openings", "eye_windows", "register_cut", "fit_local_correction",
+           "opening_pairs", "OPENED_MM", "OPENED_SHARE", "LOCAL_SPACING_MM", "LOCAL_REACH"]
 
 #: An opening has moved when how far it is open (:meth:`Opening.open_mm`) in the
 #: expressive scan differs from the neutral scan by more than this (mm), and by more
@@ -289,8 +289,7 @@ def register_cut(neutral, expressive, openings: list[Opening], register, texture
             if texture is not None:
                 # The flow found again with the expressive image warped back by this
                 # side's motion: a lid's skin travels farther than the flow finds alone.
-                current = _Corrected(motion, corrections)
-                current = current(grid.points.reshape(-1, 3)).reshape(grid.points.shape)
+                current = _Corrected(motion, corrections)(grid.points.reshape(-1, 3)).reshape(grid.points.shape)
                 side_texture = texture.refined(current, lid_windows)
                 side_targets = side_texture.targets[grid.mask]
                 side_weights = texture_weight * side_texture.confidence[grid.mask]

@@ -197,10 +197,7 @@ class TextureMatches:
         if self._tracker is None:
             raise ValueError("these matches were not made by track_texture and cannot be refined")
         if regions is not None:
-            shape = self.confidence.shape
-            regions = [np.asarray(region, dtype=bool) for region in regions]
-            if any(region.shape != shape for region in regions):
-                raise ValueError(f"regions must each have the grid's shape {shape}")
+            regions = _grid_masks(regions, self.confidence.shape, "regions")
         start = time.perf_counter()
         refined = self._tracker.match(np.asarray(displacement, dtype=np.float64), regions)
         if refined is None:
@@ -436,6 +433,14 @@ _FINEST_SCALE = 1
 REGION_MARGIN_MM = 8.0
 
 
+def _grid_masks(regions, shape, name: str) -> list[np.ndarray]:
+    """Masks of a neutral grid as bool arrays, each checked to have the grid's shape."""
+    masks = [np.asarray(region, dtype=bool) for region in regions]
+    if any(mask.shape != shape for mask in masks):
+        raise ValueError(f"{name} must each have the neutral grid's shape {shape}")
+    return masks
+
+
 def _flow_both_ways(first: np.ndarray, second: np.ndarray, finest_scale: int):
     """DIS optical flow (medium preset, at this finest pyramid level) from the first
     8-bit image to the second and back."""
@@ -500,10 +505,7 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid, options: TextureOptio
                           f"levels rms, at least {_MIN_DETAIL_GREY} needed): the motion comes from the "
                           "geometry alone", TextureWarning, stacklevel=2)
             return None
-    shape = neutral.points.shape[:2]
-    fine_regions = [np.asarray(region, dtype=bool) for region in fine_regions]
-    if any(region.shape != shape for region in fine_regions):
-        raise ValueError(f"fine_regions must each have the neutral grid's shape {shape}")
+    fine_regions = _grid_masks(fine_regions, neutral.points.shape[:2], "fine_regions")
     tracker = _Tracker(neutral, plane, [look.view for look in looks], [look.pattern for look in looks],
                        looks[0].strength, options, fine_regions)
     matches = tracker.match()
