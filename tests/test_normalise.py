@@ -1,3 +1,5 @@
+import threading
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -6,6 +8,7 @@ from tpscore.face.landmarks import N_LANDMARKS, landmark_index
 from tpscore.face.normalise import (
     AFFINE_LANDMARKS,
     FrameTransform,
+    NormalisedFace,
     landmark_transform,
     similarity_transform,
     thesis_affine_transform,
@@ -87,3 +90,28 @@ def test_frame_transform_validates_and_composes():
 def test_unknown_method_is_refused(reference):
     with pytest.raises(ValueError, match="unknown normalisation method"):
         landmark_transform(reference, reference, "procrustes")
+
+
+def test_derived_values_are_made_once_and_one_does_not_wait_for_another():
+    face = NormalisedFace(None, FrameTransform.identity())  # derived() needs no grid
+    started, release = threading.Event(), threading.Event()
+    calls = []
+
+    def slow(f):
+        calls.append("slow")
+        started.set()
+        assert release.wait(10.0)
+        return 1
+
+    first = threading.Thread(target=face.derived, args=("slow", slow))
+    first.start()
+    assert started.wait(10.0)
+    # while one thread computes "slow", another computes something else without waiting
+    other = []
+    second = threading.Thread(target=lambda: other.append(face.derived("quick", lambda f: 2)))
+    second.start()
+    second.join(5.0)
+    assert other == [2], "a derived value waited for another name's computation"
+    release.set()
+    first.join(10.0)
+    assert face.derived("slow", slow) == 1 and calls == ["slow"]

@@ -267,3 +267,24 @@ def test_fine_regions_are_matched_at_full_resolution_and_nothing_else_changes():
                           equal_nan=True)
     with pytest.raises(ValueError, match="fine_regions"):
         track_texture(neutral, expressive, fine_regions=[np.ones((4, 4), dtype=bool)])
+
+
+def test_fine_regions_can_be_found_while_the_whole_face_is_matched():
+    neutral, expressive = textured_pair()
+    x, y = neutral.points[..., 0], neutral.points[..., 1]
+    eye = np.hypot(x + 15.0, y) < 10.0
+    asked = []
+
+    def regions():
+        asked.append(True)
+        return [eye]
+
+    given = track_texture(neutral, expressive, fine_regions=[eye])
+    found = track_texture(neutral, expressive, fine_regions=regions)
+    assert np.array_equal(given.targets, found.targets, equal_nan=True)
+    assert np.array_equal(given.confidence, found.confidence)
+    guess = 0.5 * true_motion(neutral.points)
+    assert np.array_equal(given.refined(guess).targets, found.refined(guess).targets, equal_nan=True)
+    assert asked == [True]  # asked for once, and kept for the refinements
+    with pytest.raises(ValueError, match="fine_regions"):
+        track_texture(neutral, expressive, fine_regions=lambda: [np.ones((4, 4), dtype=bool)])

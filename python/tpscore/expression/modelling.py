@@ -213,8 +213,10 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
         # the expressive surface is built while the texture is tracked
         surface = second_thread.submit(source_expressive.surface)
         if source_neutral.grid.image is not None or source_expressive.grid.image is not None:
+            # the eyes' windows are asked for once the whole face is flowed: the
+            # openings are found meanwhile (on the transfer's second thread)
             texture = track_texture(source_neutral.grid, source_expressive.grid, texture_options,
-                                    eye_windows(openings(source_neutral).values(), source_neutral.grid))
+                                    lambda: eye_windows(openings(source_neutral).values(), source_neutral.grid))
         else:
             warnings.warn("neither source scan has a colour image: the motion comes from the geometry "
                           "alone, which follows the skin less closely (give each scan its image, a "

@@ -329,7 +329,17 @@ class _Tracker:
         # a pattern of unit local contrast has strength ~0.02 where it is textured in both
         # directions; flat skin tends to 0
         self.strength_weight = strength / (strength + _STRENGTH_HALF)
-        self.fine_boxes = [self._box(region) for region in fine_regions]
+        self._fine_regions = fine_regions
+        self._fine_boxes = None
+
+    @property
+    def fine_boxes(self) -> list:
+        """The fine regions' boxes (:meth:`_box`), the regions asked for when first needed."""
+        if self._fine_boxes is None:
+            regions = self._fine_regions() if callable(self._fine_regions) else self._fine_regions
+            shape = self.neutral.points.shape[:2]
+            self._fine_boxes = [self._box(region) for region in _grid_masks(regions, shape, "fine_regions")]
+        return self._fine_boxes
 
     def _warp(self, displacement: np.ndarray, box) -> np.ndarray:
         """(h, w, 2) float32 pixel positions, over a box of the plane (rows, then columns,
@@ -354,16 +364,20 @@ class _Tracker:
         own box at full resolution."""
 
         start = time.perf_counter()
-        if regions is None:
-            # the whole face, then the fine regions again over it
-            boxes = [(np.arange(len(self.begin)), (0, self.plane.height, 0, self.plane.width), _FINEST_SCALE),
-                     *self.fine_boxes]
-        else:
-            boxes = [self._box(region) for region in regions]
+
+        def boxes():
+            if regions is not None:
+                yield from (self._box(region) for region in regions)
+                return
+            yield np.arange(len(self.begin)), (0, self.plane.height, 0, self.plane.width), _FINEST_SCALE
+            # then the fine regions again over the whole face, asked for only now so that
+            # a caller can find them while the whole face is matched
+            yield from self.fine_boxes
+
         land = self.begin.copy()
         consistency = np.full(len(self.begin), np.inf)
         landed_inside = np.zeros(len(self.begin), dtype=bool)
-        for chosen, box, finest_scale in boxes:
+        for chosen, box, finest_scale in boxes():
             if len(chosen) == 0:
                 continue
             land[chosen], consistency[chosen], landed_inside[chosen] = self._match_box(
@@ -465,10 +479,12 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid, options: TextureOptio
         Two scans of one person in one frame (the expressive one aligned rigidly onto the
         neutral one), each with its colour image.
     options : TextureOptions
-    fine_regions : sequence of (H, W) bool array_like
+    fine_regions : sequence of (H, W) bool array_like, or a callable returning one
         Parts of the neutral grid (the eyes, say) matched at the image plane's full
         resolution, each over a box around it, rather than at half resolution with the
         rest of the face; so again whenever the matches are refined over the whole face.
+        A callable is called once, when the whole face has been flowed, so that the
+        caller can find the regions meanwhile.
 
     Returns
     -------
@@ -505,7 +521,8 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid, options: TextureOptio
                           f"levels rms, at least {_MIN_DETAIL_GREY} needed): the motion comes from the "
                           "geometry alone", TextureWarning, stacklevel=2)
             return None
-    fine_regions = _grid_masks(fine_regions, neutral.points.shape[:2], "fine_regions")
+    if not callable(fine_regions):
+        fine_regions = _grid_masks(fine_regions, neutral.points.shape[:2], "fine_regions")
     tracker = _Tracker(neutral, plane, [look.view for look in looks], [look.pattern for look in looks],
                        looks[0].strength, options, fine_regions)
     matches = tracker.match()

@@ -164,7 +164,11 @@ class NormalisedFace:
     grid: FaceGrid
     transform: FrameTransform
     _derived: dict = field(default_factory=dict, repr=False, init=False, compare=False)
-    _lock: threading.RLock = field(default_factory=threading.RLock, repr=False, init=False, compare=False)
+    # one lock per derived name, so that a thread computing one thing (the registration
+    # grid) does not hold up another computing something else (the openings); _lock
+    # guards the dict of locks
+    _name_locks: dict = field(default_factory=dict, repr=False, init=False, compare=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, init=False, compare=False)
 
     @property
     def landmarks(self) -> np.ndarray:
@@ -177,12 +181,15 @@ class NormalisedFace:
 
     def __setstate__(self, state):
         self.grid, self.transform = state["grid"], state["transform"]
-        self._derived, self._lock = {}, threading.RLock()
+        self._derived, self._name_locks, self._lock = {}, {}, threading.Lock()
 
     def derived(self, name, compute):
         """``compute(self)``, computed once per ``name`` (hashable; a ValueError it raised is
-        raised again on every later call); the threads that ask meanwhile wait for it."""
+        raised again on every later call); the threads that ask for it meanwhile wait, and
+        only they."""
         with self._lock:
+            lock = self._name_locks.setdefault(name, threading.RLock())
+        with lock:
             if name not in self._derived:
                 try:
                     self._derived[name] = (compute(self), None)
