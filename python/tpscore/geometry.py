@@ -163,9 +163,16 @@ def similarity_transform(source, target, *, scale: bool = True, weights=None) ->
             f"a similarity transform needs at least 3 landmark pairs present in both faces, "
             f"got {int(use.sum())}"
         )
-    src, dst, w = src[use], dst[use], w[use] / w[use].sum()
-    mu_s, mu_d = w @ src, w @ dst
-    xs, xd = src - mu_s, dst - mu_d
+    return fit_similarity(src[use], dst[use], w[use], scale=scale)
+
+
+def fit_similarity(source: np.ndarray, target: np.ndarray, weights: np.ndarray, *, scale: bool = True) -> FrameTransform:
+    """:func:`similarity_transform` without its checks, for loops that refit the same
+    points many times (a robust fit's iterations): (n, 3) float64 points, finite, and n
+    positive weights, n >= 3. Pairs on one line still raise a ValueError."""
+    w = weights / weights.sum()
+    mu_s, mu_d = w @ source, w @ target
+    xs, xd = source - mu_s, target - mu_d
     cov = (xd * w[:, None]).T @ xs
     u, sing, vt = np.linalg.svd(cov)
     if sing[1] < 1e-9 * max(sing[0], 1e-300):
@@ -174,8 +181,9 @@ def similarity_transform(source, target, *, scale: bool = True, weights=None) ->
     if np.linalg.det(u) * np.linalg.det(vt) < 0:
         d[2, 2] = -1.0  # a reflection is not a pose: flip the weakest axis instead
     rotation = u @ d @ vt
-    var_s = float((w * (xs**2).sum(axis=1)).sum())
-    s = float(np.trace(np.diag(sing) @ d) / var_s) if scale else 1.0
+    s = 1.0
+    if scale:
+        s = float(np.trace(np.diag(sing) @ d) / float((w * (xs**2).sum(axis=1)).sum()))
     m = np.eye(4)
     m[:3, :3] = s * rotation
     m[:3, 3] = mu_d - s * rotation @ mu_s

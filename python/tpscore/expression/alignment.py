@@ -42,7 +42,7 @@ from ..face.landmarks import MIRROR_LANDMARK, landmark_index
 from ..face.normalise import FrameTransform, similarity_transform
 from ..face.grid import FaceGrid
 from ..face.regions import smoothstep
-from ..geometry import robust_scale, tukey_weights
+from ..geometry import fit_similarity, robust_scale, tukey_weights
 from ..mesh import face_normals
 from ..spatial import MeshSurface
 
@@ -342,18 +342,25 @@ def residual_rigid_motion(points, motion, prior, *, anchor=None, iterations: int
     moved = p + np.asarray(motion, dtype=np.float64)
     prior = np.asarray(prior, dtype=np.float64)
     count = 1.0 + (np.zeros(len(p)) if anchor is None else np.asarray(anchor, dtype=np.float64))
-    ok = np.isfinite(moved).all(axis=1) & (prior > 0)
+    ok = np.isfinite(p).all(axis=1) & np.isfinite(moved).all(axis=1) & (prior > 0)
     p, moved, prior, count = p[ok], moved[ok], prior[ok], count[ok]
     if len(p) < 10:
         return FrameTransform.identity()
     trusted = prior > 0.5 if np.count_nonzero(prior > 0.5) >= 10 else slice(None)
-    start = similarity_transform(p, moved, scale=False, weights=prior)
+
+    def fit(weight):
+        # the points are finite and a weight sum of 6 or more (each at most 1) leaves
+        # at least 6 pairs: the checked fit's checks cost more than the fit here
+        use = weight > 0
+        return fit_similarity(p[use], moved[use], weight[use], scale=False)
+
+    start = fit(prior)
     for _ in range(iterations):
         residual = np.linalg.norm(start.apply(p) - moved, axis=1)
         weight = tukey_weights(residual, tukey_factor * robust_scale(residual[trusted], min_scale_mm)) * prior
         if weight.sum() < 6:
             break
-        start = similarity_transform(p, moved, scale=False, weights=weight)
+        start = fit(weight)
 
     def settle(transform):
         """The fit with the fixed small scale from a start, and how many points it explains."""
@@ -361,7 +368,7 @@ def residual_rigid_motion(points, motion, prior, *, anchor=None, iterations: int
             weight = tukey_weights(np.linalg.norm(transform.apply(p) - moved, axis=1), tukey_factor * MODE_SCALE_MM)
             if weight.sum() < 6:
                 return transform, 0.0
-            transform = similarity_transform(p, moved, scale=False, weights=weight)
+            transform = fit(weight)
         weight = tukey_weights(np.linalg.norm(transform.apply(p) - moved, axis=1), tukey_factor * MODE_SCALE_MM)
         return transform, float(weight @ count)
 
