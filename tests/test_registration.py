@@ -1,6 +1,7 @@
 import os
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -132,6 +133,26 @@ def test_lattice_system_solves_the_registration_terms_like_a_fresh_factorisation
                   + system.aligned(fixed + 1e-8 * sp.identity(system.n)))
         expected = SparseCholesky(matrix).solve(rhs)
         assert np.abs(system.solve(values, rhs) - expected).max() <= 1e-8 * np.abs(expected).max()
+
+
+def test_lattice_system_solves_from_several_threads_at_once_as_from_one():
+    # the two sides of a cut register on two threads with one system: each solve must
+    # factorise and solve its own matrix, whatever the other thread does meanwhile
+    rng = np.random.default_rng(5)
+    lattice = BSplineLattice([0.0, 0.0], [120.0, 100.0], 4.0)
+    xy = rng.uniform([0, 0], [120, 100], size=(3000, 2))
+    system = LatticeSystem(lattice, xy)
+    bending = system.aligned(sp.block_diag([lattice.bending()] * 3) + sp.identity(system.n))
+    problems = []
+    for k in range(8):
+        q = rng.uniform(0.1, 1.0, len(xy))[:, None, None] * np.eye(3) * (1.0 + k)
+        problems.append((system.data_term(symmetric_blocks(q)) + (0.1 + k) * bending, rng.normal(size=system.n)))
+    alone = [system.solve(values, rhs) for values, rhs in problems]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        for _ in range(3):
+            together = list(pool.map(lambda problem: system.solve(*problem), problems))
+            for one, other in zip(alone, together):
+                np.testing.assert_array_equal(one, other)
 
 
 def test_lattice_system_rejects_couplings_beyond_two_stencils_and_bad_blocks():

@@ -9,6 +9,8 @@ solves such a fit at every iteration; its reference is
 """
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -167,8 +169,15 @@ class LatticeSystem:
         # nested dissection of the node grid, the three components of a node kept
         # together (they share one row structure, so they form one 3-wide block)
         node_order = grid_nested_dissection(lattice.shape, reach=3)
-        self._factor = PatternCholesky(self.indptr, self.indices,
-                                       ordering=(node_order[:, None] + lattice.n_nodes * np.arange(3)).ravel())
+        self._ordering = (node_order[:, None] + lattice.n_nodes * np.arange(3)).ravel()
+        # factors not in use: a solve takes one (a new one when two threads solve at
+        # once, as the two sides of a cut do), so that it holds its own numeric factor
+        self._factor = self._new_factor()
+        self._idle_factors = [self._factor]
+        self._factors_lock = threading.Lock()
+
+    def _new_factor(self) -> PatternCholesky:
+        return PatternCholesky(self.indptr, self.indices, ordering=self._ordering)
 
     def _build_pattern(self) -> None:
         n = self.lattice.n_nodes
@@ -236,6 +245,15 @@ class LatticeSystem:
         return (lower + sp.tril(lower, -1).T).tocsc()
 
     def solve(self, values, rhs) -> np.ndarray:
-        """Factorise the matrix with ``values`` and solve it for ``rhs`` (n,) or (n, k)."""
-        self._factor.factorise(values)
-        return self._factor.solve(rhs)
+        """Factorise the matrix with ``values`` and solve it for ``rhs`` (n,) or (n, k).
+        Threads may solve at once."""
+        with self._factors_lock:
+            factor = self._idle_factors.pop() if self._idle_factors else None
+        if factor is None:
+            factor = self._new_factor()
+        try:
+            factor.factorise(values)
+            return factor.solve(rhs)
+        finally:
+            with self._factors_lock:
+                self._idle_factors.append(factor)

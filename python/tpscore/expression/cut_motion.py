@@ -27,6 +27,7 @@ import scipy.sparse as sp
 
 from ..face.landmarks import N_LANDMARKS
 from ..face.openings import Opening, find_openings, grid_xy, opening_sides
+from .._threads import side_by_side
 from ..geometry import off_surface, robust_scale, tukey_weights
 from ..lattice import BSplineLattice, LatticeSystem, symmetric_blocks
 from ..mesh import face_normals
@@ -279,8 +280,8 @@ def register_cut(neutral, expressive, openings: list[Opening], register, texture
                                          (opening.top - seen[opening.name].top) / height, 1.0)
     neutral_xy = _xy_of(grid)
     lid_windows = eye_windows(eyes, grid)
-    fields = []
-    for side, weight, keep in zip(("top", "bottom"), weights, landmark_weight):
+
+    def one_side(side, weight, keep):
         landmarks = np.where((keep > 0.5)[:, None], neutral.landmarks, np.nan)
         motion = register(weight, landmarks, None)
         corrections = []
@@ -295,8 +296,13 @@ def register_cut(neutral, expressive, openings: list[Opening], register, texture
                 side_weights = texture_weight * side_texture.confidence[grid.mask]
             corrections = _lid_corrections(eyes, seen, side, neutral, neutral_xy, expressive, surface, motion,
                                            side_targets, side_weights)
-        fields.append(_Corrected(motion, corrections) if corrections else motion)
-    return CutMotion(fields[0], fields[1], list(openings), texture, closure)
+        return _Corrected(motion, corrections) if corrections else motion
+
+    # the two sides share nothing they change: each on its own thread (their
+    # registrations' kernels release the GIL)
+    upper, lower = side_by_side(lambda: one_side("top", weights[0], landmark_weight[0]),
+                                lambda: one_side("bottom", weights[1], landmark_weight[1]))
+    return CutMotion(upper, lower, list(openings), texture, closure)
 
 
 def _lid_corrections(eyes, seen, side, neutral, neutral_xy, expressive, surface, motion, texture_targets,
