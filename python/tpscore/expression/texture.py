@@ -336,9 +336,10 @@ class _Tracker:
     def fine_boxes(self) -> list:
         """The fine regions' boxes (:meth:`_box`), the regions asked for when first needed."""
         if self._fine_boxes is None:
-            regions = self._fine_regions() if callable(self._fine_regions) else self._fine_regions
-            shape = self.neutral.points.shape[:2]
-            self._fine_boxes = [self._box(region) for region in _grid_masks(regions, shape, "fine_regions")]
+            regions = self._fine_regions  # masks track_texture has checked, or a callable
+            if callable(regions):
+                regions = _grid_masks(regions(), self.neutral.points.shape[:2], "fine_regions")
+            self._fine_boxes = [self._box(region) for region in regions]
         return self._fine_boxes
 
     def _warp(self, displacement: np.ndarray, box) -> np.ndarray:
@@ -404,9 +405,10 @@ class _Tracker:
         forward-backward error, and whether it lands inside the expressive surface.
         With a displacement, the expressive image is first warped back by it."""
         row0, row1, col0, col1 = box
-        expressive = self.expressive_pattern[row0:row1, col0:col1]
-        inside = self.expressive_inside[row0:row1, col0:col1]
-        if displacement is not None:
+        if displacement is None:
+            expressive = self.expressive_pattern[row0:row1, col0:col1]
+            inside = self.expressive_inside[row0:row1, col0:col1]
+        else:
             warp = self._warp(displacement, box)
             expressive = cv2.remap(self.expressive_pattern, warp, None, cv2.INTER_LINEAR, borderValue=0)
             inside = cv2.remap(self.expressive_inside, warp, None, cv2.INTER_LINEAR, borderValue=0)
