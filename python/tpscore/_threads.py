@@ -1,20 +1,22 @@
-"""The thread count of the compiled kernels, two calls run side by side, and BLAS kept
-to one thread while a transfer runs."""
+"""The thread count of the compiled kernels, helper threads kept between calls, two
+calls run side by side, and BLAS kept to one thread while a transfer runs."""
 from __future__ import annotations
 
 import functools
 import numbers
+import os
+import queue
 import threading
 import warnings
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future
 from contextlib import contextmanager
 
 from threadpoolctl import ThreadpoolController
 
 from . import _core
 
-__all__ = ["num_threads", "set_num_threads", "max_threads", "side_by_side", "single_threaded_blas",
-           "blas_on_one_thread"]
+__all__ = ["num_threads", "set_num_threads", "max_threads", "helper_thread", "side_by_side",
+           "single_threaded_blas", "blas_on_one_thread"]
 
 
 def num_threads() -> int:
@@ -68,11 +70,113 @@ def set_num_threads(n: int) -> None:
     _core.set_num_threads(max(0, min(count, cap)))
 
 
+class _KeptThread:
+    """A daemon thread that runs the calls handed to it, in order, and waits for more.
+
+    Starting a thread costs 0.1 ms on an idle machine, and far more on a busy one:
+    ``Thread.start`` waits until the new thread has run, which under a GIL held by
+    another thread can take a switch interval (5 ms). A transfer starts ten of them, and
+    they cost it 2-18 ms on its critical path (30 ms for closing eyes), so threads are
+    kept between uses instead.
+    """
+
+    def __init__(self):
+        self._calls = queue.SimpleQueue()
+        self.thread = threading.Thread(target=self._serve, name="tpscore-helper", daemon=True)
+        self.thread.start()
+
+    def run(self, call) -> Future:
+        future = Future()
+        self._calls.put((call, future))
+        return future
+
+    def stop(self) -> None:
+        self._calls.put(None)
+
+    def _serve(self) -> None:
+        while (item := self._calls.get()) is not None:
+            call, future = item
+            del item
+            if future.set_running_or_notify_cancel():
+                try:
+                    future.set_result(call())
+                except BaseException as exc:  # handed to the caller, as an executor does
+                    future.set_exception(exc)
+            # an idle thread holds nothing: a kept result would outlive its users (and
+            # the interpreter's exit, which does not end a daemon thread)
+            del call, future
+
+
+#: Idle kept threads beyond this many stop (calls nested several deep on several user
+#: threads may lease many at once; they are not all kept).
+_MAX_IDLE = 8
+_idle: list[_KeptThread] = []
+_idle_lock = threading.Lock()
+
+
+def _forget_threads_after_fork() -> None:
+    # a forked child has only the thread that forked; the parent's idle threads (and
+    # the state of the lock guarding them) do not exist there
+    global _idle_lock
+    _idle.clear()
+    _idle_lock = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_threads_after_fork)
+
+
+class HelperThread:
+    """One thread leased for a block (see :func:`helper_thread`)."""
+
+    def __init__(self, kept: _KeptThread):
+        self._kept = kept
+        self._pending: list[Future] = []
+
+    def submit(self, function, *args, **kwargs) -> Future:
+        """Run ``function(*args, **kwargs)`` on the thread after the calls submitted
+        before it; the future holds its result or its exception."""
+        future = self._kept.run(functools.partial(function, *args, **kwargs))
+        self._pending.append(future)
+        return future
+
+    def _wait(self) -> None:
+        for future in self._pending:
+            future.exception()  # waits; an exception nobody asked for stays unraised, as in an executor
+        self._pending.clear()
+
+
+@contextmanager
+def helper_thread(name: str = "tpscore-helper"):
+    """A thread of tpscore's own for the block: an idle one kept from earlier blocks, or
+    a new one. Calls given to its ``submit`` run in order; the block's end waits for
+    them all (as a one-worker ``ThreadPoolExecutor``'s does), then keeps the thread
+    for the next block. A block never waits for another block's thread, so helper
+    blocks nested in helper threads cannot deadlock."""
+    with _idle_lock:
+        kept = _idle.pop() if _idle else None
+    if kept is None:
+        kept = _KeptThread()
+    kept.thread.name = name
+    lease = HelperThread(kept)
+    try:
+        yield lease
+    finally:
+        lease._wait()
+        kept.thread.name = "tpscore-helper"
+        with _idle_lock:
+            if len(_idle) < _MAX_IDLE:
+                _idle.append(kept)
+                kept = None
+        if kept is not None:
+            kept.stop()
+
+
 def side_by_side(first, second):
-    """``(first(), second())``, the second called on another thread while this one calls
+    """``(first(), second())``, the second called on a helper thread while this one calls
     the first: for two independent calls that release the GIL (compiled kernels,
     OpenCV). Their exceptions are raised here, the first call's before the second's."""
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-side") as other_thread:
+    with helper_thread("tpscore-side") as other_thread:
         later = other_thread.submit(second)
         return first(), later.result()
 

@@ -14,12 +14,12 @@ their motion from the landmark TPS alone (:mod:`tpscore.expression.published`).
 from __future__ import annotations
 
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
 
+from .._threads import helper_thread
 from ..face.grid import FaceGrid
 from ..face.normalise import NormalisedFace, landmark_transform
 from ..face.openings import find_openings
@@ -209,7 +209,7 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
     opening open by another amount."""
     texture = None
     detected = source_neutral.grid.landmarks_detected or source_expressive.grid.landmarks_detected
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-surface") as second_thread:
+    with helper_thread("tpscore-surface") as second_thread:
         # the expressive surface is built while the texture is tracked
         surface = second_thread.submit(source_expressive.surface)
         if source_neutral.grid.image is not None or source_expressive.grid.image is not None:

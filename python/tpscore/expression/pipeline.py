@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cached_property, partial
@@ -19,7 +19,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from .._threads import blas_on_one_thread
+from .._threads import blas_on_one_thread, helper_thread
 from ..face.average_face import AverageFace, load_average_face
 from ..face.grid import FaceGrid, GridMesh
 from ..face.landmarks import MIN_LANDMARKS, N_LANDMARKS
@@ -219,7 +219,7 @@ def transfer(source_neutral: Scan, source_expressive: Scan, target: Scan, action
     labels = method.labels(activations)
     magnitude_weights(magnitude, labels)  # checked here, before the work, and only here
     clock = _Clock(progress)
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tpscore-transfer") as second_thread:
+    with helper_thread("tpscore-transfer") as second_thread:
         animation, model = _stages(method, activations, faces, second_thread, clock)
     return TransferResult(animation, magnitude, model, clock.timings)
 
