@@ -237,6 +237,41 @@ def test_closest_point_with_build_libigl(benchmark, face_mesh):
     _check_distances(np.sqrt(squared), vertices, faces, queries)
 
 
+MOVED = "a tree for a moved 150x150 face mesh (an expression's frame), then 22.5k closest points"
+
+
+def _moved_face(vertices):
+    # an expression's worth of smooth motion (a few mm) with a small head turn
+    turn = np.radians(3.0)
+    rotation = np.array([[np.cos(turn), 0, np.sin(turn)], [0, 1, 0], [-np.sin(turn), 0, np.cos(turn)]])
+    return vertices @ rotation.T + 4.0 * np.sin(vertices[:, [1, 0, 2]] / 25.0)
+
+
+@pytest.mark.benchmark(group=MOVED)
+def test_moved_tree_refitted_tpscore(benchmark, face_mesh, surface):
+    vertices, faces, queries = face_mesh
+    moved = _moved_face(vertices)
+    result = benchmark(lambda: surface.moved(moved).closest_point(queries))
+    _check_distances(result.distances, moved, faces, queries)
+
+
+@pytest.mark.benchmark(group=MOVED)
+def test_moved_tree_rebuilt_tpscore(benchmark, face_mesh):
+    vertices, faces, queries = face_mesh
+    moved = _moved_face(vertices)
+    result = benchmark(_tpscore_build_and_query, moved, faces, queries)
+    _check_distances(result.distances, moved, faces, queries)
+
+
+@pytest.mark.benchmark(group=MOVED)
+def test_moved_tree_rebuilt_libigl(benchmark, face_mesh):
+    igl = _igl()
+    vertices, faces, queries = face_mesh
+    moved = _moved_face(vertices)
+    squared, _, _ = benchmark(igl.point_mesh_squared_distance, queries, moved, faces)
+    _check_distances(np.sqrt(squared), moved, faces, queries)
+
+
 @pytest.mark.benchmark(group=CLOSEST_SMALL)
 def test_closest_point_small_tpscore(benchmark, face_mesh, surface):
     vertices, faces, queries = face_mesh

@@ -115,3 +115,33 @@ def test_derived_values_are_made_once_and_one_does_not_wait_for_another():
     release.set()
     first.join(10.0)
     assert face.derived("slow", slow) == 1 and calls == ["slow"]
+
+
+def test_the_scan_frames_tree_serves_the_normalised_surface():
+    from tpscore import MeshSurface
+    from tpscore.face.grid import FaceGrid
+
+    rng = np.random.default_rng(5)
+    rows, cols = np.mgrid[0:30, 0:25].astype(float)
+    points = np.stack([2.0 * cols, 2.0 * rows, 5.0 * np.sin(cols / 6.0) + rng.normal(scale=0.1, size=rows.shape)], -1)
+    mask = np.ones(rows.shape, dtype=bool)
+    mask[10:14, 8:12] = False  # a hole
+    scan = FaceGrid.from_points(points, mask)
+    matrix = np.eye(4)
+    matrix[:3, :3] = 1.05 * _rotation(8, -5, 2)
+    matrix[:3, 3] = [3.0, -60.0, 20.0]
+    transform = FrameTransform(matrix, "similarity")
+    face = NormalisedFace(FaceGrid.from_points(transform.apply(points), mask), transform)
+
+    scan_surface = face.scan_frame_surface(scan)
+    assert face.scan_frame_surface(scan) is scan_surface  # built once
+    surface = face.surface()
+    assert surface.faces is scan_surface.faces  # the scan frame's tree, moved, not a new build
+    mesh = face.grid.mesh()
+    queries = mesh.vertices + rng.normal(scale=1.5, size=mesh.vertices.shape)
+    for got, want in zip(surface.closest_point(queries), MeshSurface(mesh.vertices, mesh.faces).closest_point(queries)):
+        assert np.array_equal(got, want)
+
+    other = NormalisedFace(FaceGrid.from_points(points), transform)
+    with pytest.raises(ValueError, match="scan_grid is not the grid this face was normalised from"):
+        other.scan_frame_surface(scan)

@@ -652,6 +652,56 @@ def test_two_python_threads_query_one_surface():
             assert np.array_equal(a, b)
 
 
+def _same_answers(first, second, queries, origins, directions):
+    for a, b in zip(first.closest_point(queries), second.closest_point(queries)):
+        assert np.array_equal(a, b)
+    for a, b in zip(first.intersect_rays(origins, directions, both_directions=True),
+                    second.intersect_rays(origins, directions, both_directions=True)):
+        assert np.array_equal(a, b, equal_nan=True)
+
+
+@settings(max_examples=30, deadline=None)
+@given(kind=st.sampled_from(MESH_KINDS), motion=st.sampled_from(["similarity", "smooth", "scrambled"]),
+       seed=st.integers(0, 2**32 - 1))
+def test_a_moved_surface_answers_as_a_new_build_bit_for_bit(kind, motion, seed):
+    rng = np.random.default_rng(seed)
+    vertices, faces = make_mesh(kind, rng)
+    angle = rng.uniform(-np.pi, np.pi)
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    if motion == "similarity":
+        moved = 1.7 * vertices @ rotation.T + rng.normal(scale=50.0, size=3)
+    elif motion == "smooth":
+        moved = vertices + 0.2 * np.sin(vertices[:, [1, 2, 0]])
+    else:  # every vertex somewhere else: the old grouping is no help, yet answers hold
+        moved = rng.permutation(vertices) + rng.normal(size=vertices.shape)
+    surface = tpscore.MeshSurface(vertices, faces)
+    refitted = surface.moved(moved)
+    rebuilt = tpscore.MeshSurface(moved, faces)
+    queries = surface_queries(moved, faces, 40, rng)
+    directions = rng.normal(size=queries.shape)
+    _same_answers(refitted, rebuilt, queries, queries, directions)
+    assert np.array_equal(refitted.vertices, moved) and refitted.faces is surface.faces
+    # the original is untouched, and a moved surface moves again (back, here)
+    _same_answers(refitted.moved(vertices), surface, queries, queries, directions)
+    want = ref.closest_point_on_mesh(moved, faces.astype(np.int64), queries)
+    assert_closest_points_match(moved, faces, queries, refitted.closest_point(queries), want)
+
+
+def test_a_moved_surface_pickles_and_refuses_other_vertices():
+    import pickle
+    vertices, faces = grid_mesh(6, 5)
+    surface = tpscore.MeshSurface(vertices, faces).moved(vertices + [0.0, 0.0, 2.0])
+    again = pickle.loads(pickle.dumps(surface))
+    queries = np.random.default_rng(3).uniform(-1, 6, size=(50, 3))
+    _same_answers(surface, again, queries, queries, np.tile([0.0, 0.0, 1.0], (50, 1)))
+    with pytest.raises(ValueError, match=r"vertices must have this surface's shape \(30, 3\)"):
+        surface.moved(vertices[:-1])
+    with pytest.raises(ValueError, match="vertices contains NaN"):
+        surface.moved(np.where(np.arange(30)[:, None] == 4, np.nan, vertices))
+    with pytest.raises(ValueError, match="vertices"):
+        surface.moved(vertices + 1j)
+
+
 _V, _F = grid_mesh(3, 3)
 
 

@@ -83,6 +83,14 @@ void bind_spatial(nb::module_& m) {
                 new (self) MeshSurface(vertices, faces, leaf_size);
             },
             "vertices"_a, "faces"_a, "leaf_size"_a = 8)
+        .def(
+            "moved",
+            [](const MeshSurface& shape, In<Points> vertices, In<tpscore::Faces> faces) {
+                nb::gil_scoped_release release;
+                return new MeshSurface(shape, vertices, faces);
+            },
+            "vertices"_a, "faces"_a, nb::rv_policy::take_ownership,
+            "The same triangles over moved vertices: this tree, its boxes fitted again.")
         .def_prop_ro("num_triangles", &MeshSurface::num_triangles)
         .def(
             "closest_point",

@@ -435,7 +435,22 @@ MeshSurface::MeshSurface(const PointsRef& vertices, const FacesRef& faces, int l
                 (vertices(faces(f, 0), i) + vertices(faces(f, 1), i) + vertices(faces(f, 2), i)) / 3.0;
     triangle_index_.resize(static_cast<std::size_t>(nf));
     std::iota(triangle_index_.begin(), triangle_index_.end(), std::int64_t{0});
+    if (nf > 0) {
+        nodes_.reserve(static_cast<std::size_t>(2 * (nf / leaf_size_ + 1)));
+        build(0, nf, centroids);
+    }
+    fit(vertices, faces);
+}
 
+MeshSurface::MeshSurface(const MeshSurface& shape, const PointsRef& vertices, const FacesRef& faces)
+    : triangle_index_(shape.triangle_index_), nodes_(shape.nodes_), leaf_size_(shape.leaf_size_) {
+    fit(vertices, faces);
+}
+
+// Everything but the tree's structure (nodes' ranges and children, the leaf order of
+// the triangles): the corners in leaf order, the boxes, the SIMD blocks, the wide tree.
+void MeshSurface::fit(const PointsRef& vertices, const FacesRef& faces) {
+    const auto nf = static_cast<std::int32_t>(faces.rows());
     // The margin added to every box: far above the rounding of a box test or a
     // triangle-distance evaluation at the mesh's coordinate scale, far below anything
     // geometric.
@@ -446,19 +461,41 @@ MeshSurface::MeshSurface(const PointsRef& vertices, const FacesRef& faces, int l
     pad_ = 1e-9 * scale;
 
     corners_.resize(9 * static_cast<std::size_t>(nf));
-    // Leaf-order corners are needed while building (for the boxes), so fill them from
-    // the original order first and permute after the build.
-    for (std::int32_t f = 0; f < nf; ++f)
+    for (std::int32_t k = 0; k < nf; ++k) {
+        const auto f = static_cast<Eigen::Index>(triangle_index_[k]);
         for (int j = 0; j < 3; ++j)
-            for (int i = 0; i < 3; ++i) corners_[9 * f + 3 * j + i] = vertices(faces(f, j), i);
-    if (nf > 0) {
-        nodes_.reserve(static_cast<std::size_t>(2 * (nf / leaf_size_ + 1)));
-        build(0, nf, centroids);
+            for (int i = 0; i < 3; ++i) corners_[9 * k + 3 * j + i] = vertices(faces(f, j), i);
     }
-    std::vector<double> permuted(corners_.size());
-    for (std::int32_t f = 0; f < nf; ++f)
-        std::copy_n(corners_.begin() + 9 * triangle_index_[f], 9, permuted.begin() + 9 * f);
-    corners_.swap(permuted);
+    // Boxes from the leaves up: a node's children come after it (build numbers them in
+    // preorder), so one backward pass sees every child before its parent. An inner box
+    // is the union of its children's (already padded) boxes.
+    for (auto node = nodes_.rbegin(); node != nodes_.rend(); ++node) {
+        if (node->left >= 0) {
+            const Node& l = nodes_[static_cast<std::size_t>(node->left)];
+            const Node& r = nodes_[static_cast<std::size_t>(node->right)];
+            for (int a = 0; a < 3; ++a) {
+                node->lo[a] = std::min(l.lo[a], r.lo[a]);
+                node->hi[a] = std::max(l.hi[a], r.hi[a]);
+            }
+            continue;
+        }
+        for (int a = 0; a < 3; ++a) {
+            node->lo[a] = kInf;
+            node->hi[a] = -kInf;
+        }
+        for (std::int32_t i = node->begin; i < node->end; ++i) {
+            const double* corner = &corners_[9 * static_cast<std::size_t>(i)];
+            for (int j = 0; j < 3; ++j)
+                for (int a = 0; a < 3; ++a) {
+                    node->lo[a] = std::min(node->lo[a], corner[3 * j + a]);
+                    node->hi[a] = std::max(node->hi[a], corner[3 * j + a]);
+                }
+        }
+        for (int a = 0; a < 3; ++a) {
+            node->lo[a] -= pad_;
+            node->hi[a] += pad_;
+        }
+    }
 
     // The SIMD test's blocks (one per leaf, in leaf order), and each triangle's leaf.
     const auto stride = static_cast<std::size_t>(nf);
@@ -488,6 +525,7 @@ MeshSurface::MeshSurface(const PointsRef& vertices, const FacesRef& faces, int l
             if (leaf.begin + lane < leaf.end) leaf_of_[static_cast<std::size_t>(f)] = static_cast<std::int32_t>(id);
         }
     }
+    wide_.clear();
     if (!nodes_.empty()) {
         wide_.reserve(nodes_.size() / 4 + 1);
         build_wide(0);
@@ -577,32 +615,8 @@ std::int32_t MeshSurface::build(std::int32_t begin, std::int32_t end,
         for (std::int32_t i = begin; i < end; ++i) triangle_index_[i] = keyed[i - begin].second;
         node.left = build(begin, mid, centroids);
         node.right = build(mid, end, centroids);
-        // An inner box is the union of its children's (already padded) boxes: one pass
-        // over the corners per leaf instead of one per level.
-        const Node& l = nodes_[static_cast<std::size_t>(node.left)];
-        const Node& r = nodes_[static_cast<std::size_t>(node.right)];
-        for (int a = 0; a < 3; ++a) {
-            node.lo[a] = std::min(l.lo[a], r.lo[a]);
-            node.hi[a] = std::max(l.hi[a], r.hi[a]);
-        }
-    } else {
-        for (int a = 0; a < 3; ++a) {
-            node.lo[a] = kInf;
-            node.hi[a] = -kInf;
-        }
-        for (std::int32_t i = begin; i < end; ++i) {
-            const double* corner = &corners_[9 * triangle_index_[i]];
-            for (int j = 0; j < 3; ++j)
-                for (int a = 0; a < 3; ++a) {
-                    node.lo[a] = std::min(node.lo[a], corner[3 * j + a]);
-                    node.hi[a] = std::max(node.hi[a], corner[3 * j + a]);
-                }
-        }
-        for (int a = 0; a < 3; ++a) {
-            node.lo[a] -= pad_;
-            node.hi[a] += pad_;
-        }
     }
+    // the boxes are fitted afterwards (fit), from the leaves up
     nodes_[static_cast<std::size_t>(id)] = node;
     return id;
 }

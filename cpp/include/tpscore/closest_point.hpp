@@ -57,6 +57,13 @@ public:
     /// Preconditions: vertices (nv, 3) finite; faces (nf, 3) with indices in [0, nv).
     MeshSurface(const PointsRef& vertices, const FacesRef& faces, int leaf_size = 8);
 
+    /// The same triangles (`faces` as `shape` was built with) over moved `vertices`:
+    /// `shape`'s tree with its boxes fitted again, a fraction of a build's cost. Queries
+    /// stay exact whatever the motion; they slow down only as the motion scrambles
+    /// the tree's grouping (a rigid or smooth motion keeps it).
+    /// Preconditions: those of the other constructor, and faces equal to `shape`'s.
+    MeshSurface(const MeshSurface& shape, const PointsRef& vertices, const FacesRef& faces);
+
     std::int64_t num_triangles() const { return static_cast<std::int64_t>(triangle_index_.size()); }
 
     /// For each row of `queries` (m, 3): the closest point of the mesh (m, 3 row-major
@@ -99,6 +106,7 @@ public:
 private:
     std::int32_t build(std::int32_t begin, std::int32_t end, const std::vector<double>& centroids);
     std::int32_t build_wide(std::int32_t node);
+    void fit(const PointsRef& vertices, const FacesRef& faces);
 
     // Corners of each triangle in leaf order: 9 doubles (a, b, c) per triangle.
     std::vector<double> corners_;

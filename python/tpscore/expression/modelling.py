@@ -176,7 +176,10 @@ def align_expressive(neutral: NormalisedFace, neutral_grid: FaceGrid, expressive
     as two people's do are refused (:class:`PersonMismatchError`) unless
     ``allow_other_person``, and warned about where they may be.
     """
-    alignment = align_rigid(expressive_grid, neutral_grid, fixed_surface=None, still_weight=still)
+    # the neutral scan's tree, kept with the face: its surface in the reference frame is
+    # then this tree moved, not a second build
+    alignment = align_rigid(expressive_grid, neutral_grid, fixed_surface=neutral.scan_frame_surface(neutral_grid),
+                            still_weight=still)
     kind = "whole" if still is None else "still"
     limit, refused = SAME_PERSON_MEDIAN_MM[kind], OTHER_PERSON_MEDIAN_MM[kind]
     distance = alignment.median_distance_mm

@@ -234,6 +234,18 @@ class NormalisedFace:
             raise ValueError("the face has no triangles (too few valid grid vertices)")
         return surface
 
+    def scan_frame_surface(self, scan_grid: FaceGrid) -> MeshSurface | None:
+        """The surface of ``scan_grid``, the grid this face was normalised from (in its
+        scan frame), built once; None when it makes no triangle. :meth:`surface`, asked
+        for afterwards, is then this tree moved into the reference frame
+        (:meth:`MeshSurface.moved`: the same answers for a fifth of a build's time)."""
+        def build(face):
+            if scan_grid.mask.shape != face.grid.mask.shape or not np.array_equal(scan_grid.mask, face.grid.mask):
+                raise ValueError("scan_grid is not the grid this face was normalised from (its mask differs)")
+            mesh = scan_grid.mesh()
+            return MeshSurface(mesh.vertices, mesh.faces) if len(mesh.faces) else None
+        return self.derived("scan-frame surface", build)
+
 
 def _valid_vertices(face: NormalisedFace) -> np.ndarray:
     valid_index = np.flatnonzero(face.grid.mask.ravel())
@@ -245,7 +257,14 @@ def _valid_vertices(face: NormalisedFace) -> np.ndarray:
 def _surface_over_valid_vertices(face: NormalisedFace) -> MeshSurface | None:
     face._valid_index()  # refuses a face of fewer than 3 valid vertices first
     mesh = face.grid.mesh()
-    return MeshSurface(mesh.vertices, mesh.faces) if len(mesh.faces) else None
+    if len(mesh.faces) == 0:
+        return None
+    # the scan frame's tree, when one is built already (not waited for), fits these
+    # vertices too: one mask, so the same triangles, moved by the normalisation
+    scan_surface, _ = face._derived.get("scan-frame surface", (None, None))
+    if scan_surface is not None:
+        return scan_surface.moved(mesh.vertices)
+    return MeshSurface(mesh.vertices, mesh.faces)
 
 
 def normalise_face(grid: FaceGrid, reference_landmarks, method: str = "similarity") -> NormalisedFace:
