@@ -319,10 +319,17 @@ def test_supernodal_factor_is_bitwise_independent_of_the_thread_count():
             tpscore.set_num_threads(factorised)
             factor.factorise(values)
             results.append(factor.solve(rhs))
+            # a call's own thread count: serial, or as many as it asks for
+            for workers in (1, 2, 3):
+                factor.factorise(values, workers=workers)
+                results.append(factor.solve(rhs))
     finally:
         tpscore.set_num_threads(previous)
     for result in results[1:]:
         assert np.array_equal(result, results[0])  # every supernode sums in one order
+    for bad in (0, -2, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="workers must be"):
+            factor.factorise(values, workers=bad)
 
 
 def test_supernodal_factor_reports_an_indefinite_matrix_the_same_way_on_any_thread_count():

@@ -81,13 +81,13 @@ void bind_sparse_solve(nb::module_& m) {
             "Eliminate the unknowns in the given order (a permutation of 0 .. n-1).")
         .def(
             "factorize",
-            [](PatternCholesky& self, ValueArray values, double pivot_tolerance) {
+            [](PatternCholesky& self, ValueArray values, double pivot_tolerance, int workers) {
                 if (values.size() != self.stored_entries())
                     throw std::invalid_argument("values must hold one value per stored entry");
                 nb::gil_scoped_release release;
-                self.factorize(values.data(), pivot_tolerance);
+                self.factorize(values.data(), pivot_tolerance, workers);
             },
-            "values"_a, "pivot_tolerance"_a)
+            "values"_a, "pivot_tolerance"_a, "workers"_a = 0)
         .def("solve", &solve<PatternCholesky>, "rhs"_a, nb::call_guard<nb::gil_scoped_release>(),
              "Solve A X = B with the last factor, for B of shape (n, k); returns X (n, k).")
         .def_prop_ro("size", &PatternCholesky::size)

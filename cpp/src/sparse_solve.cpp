@@ -372,13 +372,15 @@ constexpr Index kSucceeded = -1;
 constexpr Index kNotRun = -2;
 constexpr Index kSkipped = -3;  // a descendant failed
 
-// Below this many multiply-adds (about 3 ms of work) a factorisation runs on the
-// calling thread. Starting a thread costs tens of microseconds, but on a busy machine
-// a new thread can wait milliseconds for a core, and the factorisation waits for it:
-// measured on 2 busy cores, two threads made the registration's default system
-// (1,425 unknowns, 28 million multiply-adds) slower in the median and no faster at
-// best, while at 53 million and more they gain.
-constexpr double kParallelWork = 4.0e7;
+// Below this many multiply-adds (about 2 ms of work) a factorisation runs on the
+// calling thread: a thread pool's hand-over costs microseconds, but on a busy machine
+// a helper can wait milliseconds for a core. Measured on 2 cores: the registration's
+// default system (1,440 unknowns, 30 million multiply-adds) factorises in 2.1 ms on two
+// threads against 3.4 ms on one, and a transfer's modelling stage (ten of them, the
+// other core otherwise idle) takes 5-10 ms less. At 10 million the closing eyes' local
+// corrections (14-24 million each, both sides of the cut at once) went parallel too and
+// made that transfer slower.
+constexpr double kParallelWork = 2.5e7;
 
 }  // namespace
 
@@ -638,7 +640,7 @@ std::int64_t PatternCholesky::factor_supernode(std::int64_t s, const double* val
     return failed < 0 ? kSucceeded : begin + failed;
 }
 
-void PatternCholesky::factorize(const double* values, double pivot_tolerance) {
+void PatternCholesky::factorize(const double* values, double pivot_tolerance, int workers) {
     factorised_ = false;
     if (n_ == 0) {
         min_pivot_ = max_pivot_ = 0.0;
@@ -657,15 +659,16 @@ void PatternCholesky::factorize(const double* values, double pivot_tolerance) {
         outcome[s] = factor_supernode(s, values, kernels);
     };
 
-    if (groups_.empty() || num_threads() <= 1) {
+    const int threads = workers > 0 ? std::min(workers, max_threads()) : num_threads();
+    if (groups_.empty() || threads <= 1) {
         for (Index s = 0; s < supernodes; ++s) run(s);
     } else {
         // Each thread claims the next unclaimed group, so a thread that starts late
         // (the machine is busy) leaves its share to the others instead of holding
         // them up.
         std::atomic<std::size_t> next{0};
-        const std::size_t workers = std::min(groups_.size(), static_cast<std::size_t>(num_threads()));
-        parallel_for(workers, 1, [&](std::size_t, std::size_t) {
+        const std::size_t tasks = std::min(groups_.size(), static_cast<std::size_t>(threads));
+        parallel_for(tasks, 1, [&](std::size_t, std::size_t) {
             for (std::size_t g = next++; g < groups_.size(); g = next++)
                 for (Index root : groups_[g])
                     for (Index s = subtree_first_[root]; s <= root; ++s) run(s);

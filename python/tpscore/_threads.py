@@ -15,7 +15,7 @@ from threadpoolctl import ThreadpoolController
 
 from . import _core
 
-__all__ = ["num_threads", "set_num_threads", "max_threads", "helper_thread", "side_by_side",
+__all__ = ["num_threads", "set_num_threads", "max_threads", "as_workers", "helper_thread", "side_by_side",
            "single_threaded_blas", "blas_on_one_thread"]
 
 
@@ -68,6 +68,26 @@ def set_num_threads(n: int) -> None:
                       f"use {cap} threads", RuntimeWarning, stacklevel=2)
     # The core takes a C int; anything beyond the cap means the cap.
     _core.set_num_threads(max(0, min(count, cap)))
+
+
+def as_workers(workers) -> int:
+    """A kernel call's ``workers`` argument as the core takes it: -1 (all threads)
+    becomes 0, the core's default; counts above :func:`max_threads` mean that many, as
+    for :func:`set_num_threads` (the core takes a C int and caps it there anyway).
+
+    Raises
+    ------
+    ValueError
+        Naming ``workers``: not an integer, or 0 or below -1.
+    """
+    if isinstance(workers, bool) or not isinstance(workers, numbers.Integral):
+        raise ValueError(f"workers must be an integer (-1 for all threads), got {workers!r}")
+    workers = int(workers)
+    if workers == -1:
+        return 0
+    if workers < 1:
+        raise ValueError(f"workers must be -1 (all threads) or >= 1, got {workers}")
+    return min(workers, _core.max_threads())
 
 
 class _KeptThread:

@@ -174,6 +174,7 @@ class LatticeSystem:
         # once, as the two sides of a cut do), so that it holds its own numeric factor
         self._factor = self._new_factor()
         self._idle_factors = [self._factor]
+        self._solving = 0  # solves in flight
         self._factors_lock = threading.Lock()
 
     def _new_factor(self) -> PatternCholesky:
@@ -246,14 +247,22 @@ class LatticeSystem:
 
     def solve(self, values, rhs) -> np.ndarray:
         """Factorise the matrix with ``values`` and solve it for ``rhs`` (n,) or (n, k).
-        Threads may solve at once."""
+
+        Threads may solve at once. A factorisation alone shares the elimination tree's
+        subtrees among the kernel threads; one that starts while another thread solves
+        this system stays on its own thread, since the cores are taken (the two sides
+        of a cut, registered side by side). The result is the same either way, bit for
+        bit."""
         with self._factors_lock:
             factor = self._idle_factors.pop() if self._idle_factors else None
+            self._solving += 1
+            alone = self._solving == 1
         if factor is None:
             factor = self._new_factor()
         try:
-            factor.factorise(values)
+            factor.factorise(values, workers=-1 if alone else 1)
             return factor.solve(rhs)
         finally:
             with self._factors_lock:
                 self._idle_factors.append(factor)
+                self._solving -= 1

@@ -9,10 +9,13 @@ pattern once (the iterations of the dense registration in :mod:`tpscore.expressi
 """
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 import scipy.sparse as sp
 
 from . import _core
+from ._threads import as_workers
 from ._validation import Immutable, as_array, as_positive, check_finite
 
 __all__ = ["PatternCholesky", "SparseCholesky", "grid_nested_dissection"]
@@ -311,8 +314,12 @@ class PatternCholesky:
         included (supernodal method; None for the simplicial one)."""
         return int(self._factor.factor_nonzeros) if self._method == "supernodal" else None
 
-    def factorise(self, values) -> None:
+    def factorise(self, values, *, workers: int = -1) -> None:
         """Factorise the matrix with this pattern and ``values`` (one per entry, CSC order).
+
+        ``workers``: the threads that may share the elimination tree's independent
+        subtrees (supernodal method; -1 for all, 1 for serial). The factor is the same,
+        bit for bit, with any count.
 
         Raises
         ------
@@ -324,7 +331,10 @@ class PatternCholesky:
         if array.shape != (self._entries,):
             raise ValueError(f"values must have shape ({self._entries},), got {array.shape}")
         check_finite(array, "values")
-        _factorise(lambda: self._factor.factorize(array, _PIVOT_TOLERANCE),
+        threads = as_workers(workers)
+        factorize = (partial(self._factor.factorize, workers=threads) if self._method == "supernodal"
+                     else self._factor.factorize)
+        _factorise(lambda: factorize(array, _PIVOT_TOLERANCE),
                    lambda: sp.csc_matrix((array, self._pattern[1], self._pattern[0]),
                                          shape=(self._n, self._n)), "the matrix")
 

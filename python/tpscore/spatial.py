@@ -6,12 +6,12 @@ input coordinates (mm throughout tpscore).
 """
 from __future__ import annotations
 
-import numbers
 from typing import NamedTuple
 
 import numpy as np
 
 from . import _core
+from ._threads import as_workers
 from ._validation import (Immutable, MAX_DENSE_ELEMENTS, MAX_POINTS, MAX_SPARSE_ENTRIES, as_count, as_faces, as_points,
                           check_rows, gib, row_count)
 
@@ -58,22 +58,6 @@ def _int64(array: np.ndarray) -> np.ndarray:
     (if identical) type from ``np.int64`` on some platforms.
     """
     return array.view(np.int64)
-
-
-def _workers(workers) -> int:
-    """The thread count passed to the core: -1 (all) becomes 0, the core's 'default'.
-
-    Counts above :func:`tpscore.max_threads` mean that many, as for
-    :func:`tpscore.set_num_threads` (the core takes a C int and caps it there anyway).
-    """
-    if isinstance(workers, (bool, np.bool_)) or not isinstance(workers, numbers.Integral):
-        raise ValueError(f"workers must be an integer (-1 for all threads), got {workers!r}")
-    workers = int(workers)
-    if workers == -1:
-        return 0
-    if workers < 1:
-        raise ValueError(f"workers must be -1 (all threads) or >= 1, got {workers}")
-    return min(workers, _core.max_threads())
 
 
 def _check_slots(m: int | None, k: int) -> None:
@@ -185,7 +169,7 @@ class KDTree(Immutable):
         queries = as_points(points, "points")
         bound = _radius(distance_upper_bound, "distance_upper_bound")
         _check_slots(len(queries), k)
-        distances, indices = self._tree.query(queries, k, bound, _workers(workers))
+        distances, indices = self._tree.query(queries, k, bound, as_workers(workers))
         indices = _int64(indices)
         # cKDTree's convention for a missing neighbour: index n, one past the last point.
         indices[indices < 0] = self.n
@@ -228,7 +212,7 @@ class KDTree(Immutable):
         radius = _radius(r, "r")
         if not np.isfinite(radius):
             raise ValueError("r must be finite; use query with k=n for all points")
-        workers = _workers(workers)
+        workers = as_workers(workers)
         pairs = _pairs_beyond(self._tree, queries, radius, workers, MAX_RADIUS_PAIRS)
         if pairs is not None:
             raise ValueError(
@@ -264,7 +248,7 @@ class KDTree(Immutable):
         radius = _radius(r, "r")
         if not np.isfinite(radius):
             raise ValueError(f"r must be finite; every query point has all {self.n} points within r = inf")
-        return _int64(self._tree.count_radius(queries, radius, _workers(workers)))
+        return _int64(self._tree.count_radius(queries, radius, as_workers(workers)))
 
     def query_radius(self, points, r: float, *, return_distance: bool = False,
                      sort: bool = False, workers: int = -1):
@@ -425,7 +409,7 @@ class MeshSurface(Immutable):
         """
         queries = as_points(points, "points")
         closest, triangles, barycentric, distances = self._surface.closest_point(
-            queries, _workers(workers))
+            queries, as_workers(workers))
         return ClosestPoints(closest, _int64(triangles), barycentric, distances)
 
     def intersect_rays(self, origins, directions, *, max_distance: float = np.inf,
@@ -477,7 +461,7 @@ class MeshSurface(Immutable):
         unit = directions / lengths[:, None]
         limit = _radius(max_distance, "max_distance")
         hit, t, points, triangles, barycentric = self._surface.intersect_rays(
-            origins, unit, limit, bool(both_directions), _workers(workers))
+            origins, unit, limit, bool(both_directions), as_workers(workers))
         return RayHits(hit, t, points, _int64(triangles), barycentric)
 
 

@@ -89,8 +89,10 @@ public:
     /// the matrix is singular or indefinite (a pivot of D in the equivalent
     /// P A P^T = L' D L'^T, i.e. a squared diagonal entry of L, that is not clearly
     /// positive); the object then holds no factor. The message names the first
-    /// failing pivot in elimination order, whatever the thread count.
-    void factorize(const double* values, double pivot_tolerance);
+    /// failing pivot in elimination order, whatever the thread count. `workers`: the
+    /// threads that may share the independent subtrees (<= 0: tpscore::num_threads());
+    /// the factor is the same, bit for bit, with any count.
+    void factorize(const double* values, double pivot_tolerance, int workers = 0);
 
     /// Solves A X = B with the last factor, column by column and in parallel over
     /// columns (each column on its own, so X does not depend on the thread count).
