@@ -1,5 +1,6 @@
 """The README's examples run as printed: kernels, transfer, adaptation, elastic model, physical skin."""
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +36,14 @@ def test_the_transfer_example_runs_on_the_demo_scans(tmp_path, monkeypatch):
     write_demo_scans(tmp_path / "demo-output" / "scans")
     monkeypatch.chdir(tmp_path)
     namespace: dict = {}
-    exec(compile(blocks[0], "README.md", "exec"), namespace)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        exec(compile(blocks[0], "README.md", "exec"), namespace)
+    # the brows asked of the surprise, whose jaw drops, may warn (as the README says): the
+    # warning then names that cause, not only two people's scans
+    import tpscore
+    mismatch = [str(w.message) for w in caught if issubclass(w.category, tpscore.PersonMismatchWarning)]
+    assert all("carry all of it" in message for message in mismatch), mismatch
     surprise, brows, smile = namespace["surprise"], namespace["brows"], namespace["smile"]
     assert surprise.vertices.shape == (150, 150, 3) and surprise.colours.shape == (150, 150, 3)
     assert (tmp_path / "surprise.html").stat().st_size > 10_000

@@ -187,11 +187,16 @@ def align_expressive(neutral: NormalisedFace, neutral_grid: FaceGrid, expressive
         part = "the face" if still is None else "its still part"
         found = (f"the expressive scan does not fit the neutral scan rigidly: {part} lies a median "
                  f"{distance:.2f} mm off it after the alignment (two scans of one person: under {limit:g} mm)")
+        # the other cause of a still part that does not fit: a scan that moves more than
+        # the request (brows asked of a surprise, whose jaw drops)
+        more = ("" if still is None else
+                " Or does the expressive scan move more than the requested AUs, its still part too (a whole "
+                "expression)? Then carry all of it: 'all' or the emotion's name.")
         if distance > refused and not allow_other_person:
             raise PersonMismatchError(
                 f"{found}, beyond the {refused:g} mm of two people's scans: they are not one person's. If they "
-                "are, pass allow_other_person=True (TransferOptions(allow_other_person=True))")
-        warnings.warn(f"{found}. Are they scans of the same person?", PersonMismatchWarning, stacklevel=3)
+                f"are, pass allow_other_person=True (TransferOptions(allow_other_person=True)).{more}")
+        warnings.warn(f"{found}. Are they scans of the same person?{more}", PersonMismatchWarning, stacklevel=3)
     transform = alignment.transform.then(neutral.transform)
     moved = replace(expressive_grid, points=transform.apply(expressive_grid.points),
                     landmarks=transform.apply(expressive_grid.landmarks))
