@@ -13,8 +13,9 @@
 #include <utility>
 #include <vector>
 
-#include "tpscore/supernode_kernels.hpp"
+#include "tpscore/kdtree.hpp"  // parallel_rows
 #include "tpscore/parallel.hpp"
+#include "tpscore/supernode_kernels.hpp"
 
 namespace tpscore {
 
@@ -659,16 +660,14 @@ void PatternCholesky::factorize(const double* values, double pivot_tolerance, in
         outcome[s] = factor_supernode(s, values, kernels);
     };
 
-    const int threads = workers > 0 ? std::min(workers, max_threads()) : num_threads();
-    if (groups_.empty() || threads <= 1) {
+    if (groups_.empty()) {
         for (Index s = 0; s < supernodes; ++s) run(s);
     } else {
         // Each thread claims the next unclaimed group, so a thread that starts late
         // (the machine is busy) leaves its share to the others instead of holding
-        // them up.
+        // them up; with workers == 1 this thread claims them all.
         std::atomic<std::size_t> next{0};
-        const std::size_t tasks = std::min(groups_.size(), static_cast<std::size_t>(threads));
-        parallel_for(tasks, 1, [&](std::size_t, std::size_t) {
+        parallel_rows(groups_.size(), 1, workers, [&](std::size_t, std::size_t) {
             for (std::size_t g = next++; g < groups_.size(); g = next++)
                 for (Index root : groups_[g])
                     for (Index s = subtree_first_[root]; s <= root; ++s) run(s);

@@ -90,8 +90,9 @@ public:
     /// P A P^T = L' D L'^T, i.e. a squared diagonal entry of L, that is not clearly
     /// positive); the object then holds no factor. The message names the first
     /// failing pivot in elimination order, whatever the thread count. `workers`: the
-    /// threads that may share the independent subtrees (<= 0: tpscore::num_threads());
-    /// the factor is the same, bit for bit, with any count.
+    /// threads that may share the independent subtrees, as for the other kernels
+    /// (parallel_rows: <= 0 for tpscore::num_threads(), 1 for this thread alone); the
+    /// factor is the same, bit for bit, with any count.
     void factorize(const double* values, double pivot_tolerance, int workers = 0);
 
     /// Solves A X = B with the last factor, column by column and in parallel over
