@@ -222,19 +222,25 @@ def _tpscore_build_and_query(vertices, faces, queries):
     return tpscore.MeshSurface(vertices, faces).closest_point(queries)
 
 
-@pytest.mark.benchmark(group=CLOSEST_BUILD)
-def test_closest_point_with_build_tpscore(benchmark, face_mesh):
-    vertices, faces, queries = face_mesh
+def _time_build_and_query_tpscore(benchmark, vertices, faces, queries):
     result = benchmark(_tpscore_build_and_query, vertices, faces, queries)
     _check_distances(result.distances, vertices, faces, queries)
 
 
-@pytest.mark.benchmark(group=CLOSEST_BUILD)
-def test_closest_point_with_build_libigl(benchmark, face_mesh):
+def _time_build_and_query_libigl(benchmark, vertices, faces, queries):
     igl = _igl()
-    vertices, faces, queries = face_mesh
     squared, _, _ = benchmark(igl.point_mesh_squared_distance, queries, vertices, faces)
     _check_distances(np.sqrt(squared), vertices, faces, queries)
+
+
+@pytest.mark.benchmark(group=CLOSEST_BUILD)
+def test_closest_point_with_build_tpscore(benchmark, face_mesh):
+    _time_build_and_query_tpscore(benchmark, *face_mesh)
+
+
+@pytest.mark.benchmark(group=CLOSEST_BUILD)
+def test_closest_point_with_build_libigl(benchmark, face_mesh):
+    _time_build_and_query_libigl(benchmark, *face_mesh)
 
 
 MOVED = "a tree for a moved 150x150 face mesh (an expression's frame), then 22.5k closest points"
@@ -258,18 +264,13 @@ def test_moved_tree_refitted_tpscore(benchmark, face_mesh, surface):
 @pytest.mark.benchmark(group=MOVED)
 def test_moved_tree_rebuilt_tpscore(benchmark, face_mesh):
     vertices, faces, queries = face_mesh
-    moved = _moved_face(vertices)
-    result = benchmark(_tpscore_build_and_query, moved, faces, queries)
-    _check_distances(result.distances, moved, faces, queries)
+    _time_build_and_query_tpscore(benchmark, _moved_face(vertices), faces, queries)
 
 
 @pytest.mark.benchmark(group=MOVED)
 def test_moved_tree_rebuilt_libigl(benchmark, face_mesh):
-    igl = _igl()
     vertices, faces, queries = face_mesh
-    moved = _moved_face(vertices)
-    squared, _, _ = benchmark(igl.point_mesh_squared_distance, queries, moved, faces)
-    _check_distances(np.sqrt(squared), moved, faces, queries)
+    _time_build_and_query_libigl(benchmark, _moved_face(vertices), faces, queries)
 
 
 @pytest.mark.benchmark(group=CLOSEST_SMALL)
