@@ -2,7 +2,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tpscore.expression.alignment import align_rigid, fit_mirror_symmetry, residual_rigid_motion, rigid_landmark_fit
+from tpscore.expression.alignment import (ANCHOR_PARTS, align_rigid, fit_mirror_symmetry, residual_rigid_motion,
+                                         rigid_landmark_fit, stable_weight)
+from tpscore.face.landmarks import landmark_index
 from tpscore.face.normalise import FrameTransform
 from tpscore.face.regions import region_weight
 from tpscore.face.resampling import resample_scan
@@ -124,3 +126,26 @@ def test_residual_rigid_motion_prefers_the_anchored_still_part_over_a_larger_mov
     assert np.allclose(largest.apply(points[~block])[:, 1] - points[~block, 1], 1.0, atol=0.1)
     # counting the still part twice picks it: the motion left is the block's alone
     assert np.abs(anchored.apply(points) - points).max() < 0.1
+
+
+_CORNERS = ("Inner left eye corner", "Inner right eye corner", "Outer left eye corner", "Outer right eye corner")
+
+
+def test_the_eye_corners_are_anchors_where_a_corner_landmark_is():
+    grid = _grid(datasets.make_face(datasets.random_identity(5), None, noise_mm=0.0, seed=1))
+    points, landmarks = grid.points[grid.mask], grid.landmarks
+    assert "canthi" in ANCHOR_PARTS
+    canthi = stable_weight(points, landmarks, ("canthi",), elsewhere=0.0)
+    near = [np.linalg.norm(points - landmarks[landmark_index(name)], axis=1) for name in _CORNERS]
+    nearest = np.min(near, axis=0)
+    assert np.all(canthi[nearest < 4.0] == 1.0)  # within about 5 mm of a corner: full weight
+    assert np.all(canthi[nearest > 9.0] == 0.0)  # beyond about 8 mm: none
+    # the default parts leave the corners out: the ICP's weight is what it was
+    assert np.array_equal(stable_weight(points, landmarks),
+                          stable_weight(points, landmarks, ("bridge", "forehead", "temples")))
+    # a missing corner loses its own patch and no other
+    missing = landmarks.copy()
+    missing[landmark_index(_CORNERS[0])] = np.nan
+    partial = stable_weight(points, missing, ("canthi",), elsewhere=0.0)
+    assert np.all(partial[near[0] < 4.0] == 0.0) and np.all(np.isfinite(partial))
+    assert np.all(partial[np.min(near[1:], axis=0) < 4.0] == 1.0)

@@ -267,17 +267,24 @@ _BRIDGE_SPAN = ((-0.95, -0.75), (0.45, 0.25))
 _FOREHEAD_FROM = (1.2, 1.45)
 _TEMPLE_FROM = (0.55, 0.62)
 _TEMPLE_SPAN = ((-0.3, -0.1), (0.9, 0.7))
+# The eye corners (the canthi, which the canthal tendons tie to the orbit's rim): full
+# weight within 0.14 units (about 5 mm) of a corner, none beyond 0.22 (about 8 mm),
+# where the lids' own motion begins to dominate.
+_CANTHUS_RADIUS = (0.22, 0.14)
 # The eye corners' distances assumed when a pair is missing (mm).
 _INNER_EYES_MM, _OUTER_EYES_MM = 37.0, 89.0
 
 
 STABLE_PARTS = ("bridge", "forehead", "temples")
+#: Every part :func:`stable_weight` can place: the stable parts and the eye corners.
+KNOWN_PARTS = (*STABLE_PARTS, "canthi")
 
 
 def stable_weight(points, landmarks, parts=STABLE_PARTS, elsewhere: float = STABLE_ELSEWHERE) -> np.ndarray:
     """Weight in [0, 1] of each point (..., 3) of a face (roughly frontal, +y up) as a
     part that no expression moves much: 1 on the nose's bridge, the upper forehead and
-    the temples (bone under thin skin; ``parts`` names those wanted),
+    the temples (bone under thin skin), or at the eye corners (``"canthi"``, tied to
+    the bone by tendons); ``parts`` names those wanted,
     ``elsewhere`` (:data:`STABLE_ELSEWHERE`) elsewhere, 0 at NaN points. Placed from the
     eye corners (the nose saddles if they are missing)."""
     lm = np.asarray(landmarks, dtype=np.float64)
@@ -304,6 +311,11 @@ def stable_weight(points, landmarks, parts=STABLE_PARTS, elsewhere: float = STAB
     temples = (smoothstep(_TEMPLE_FROM[0] * outer_mm, _TEMPLE_FROM[1] * outer_mm, across)
                * smoothstep(*_TEMPLE_SPAN[0], up) * smoothstep(*_TEMPLE_SPAN[1], up))
     found = {"bridge": bridge, "forehead": forehead, "temples": temples}
+    if "canthi" in parts:
+        corners = [c for c in inner + outer if np.isfinite(c).all()]
+        found["canthi"] = np.max([smoothstep(_CANTHUS_RADIUS[0] * inner_mm, _CANTHUS_RADIUS[1] * inner_mm,
+                                             np.linalg.norm(p - c, axis=-1)) for c in corners]
+                                 or [np.zeros(up.shape)], axis=0)
     weight = np.maximum.reduce([*(found[part] for part in parts), np.full(up.shape, float(elsewhere))])
     return np.where(np.isfinite(weight), weight, 0.0)
 
@@ -317,12 +329,13 @@ MODE_SCALE_MM = 0.3
 MODE_STARTS_MM = (-2.0, 2.0)
 
 
-#: The stable parts whose points count twice when the residual rigid motion picks the
-#: largest part that moved as one: the bone under the nose's bridge and the temples.
-#: Not the forehead, which raised brows carry up as a block. In whole expressions that
-#: move every part of the face a little (anger's cheeks and nose rise by about a
-#: millimetre together), the largest such part need not be the still one.
-ANCHOR_PARTS = ("bridge", "temples")
+#: The parts whose points count twice when the residual rigid motion picks the largest
+#: part that moved as one: the bone under the nose's bridge, the temples and the eye
+#: corners. Not the forehead, which raised brows carry up as a block. In whole
+#: expressions that move every part of the face a little (anger's cheeks and nose rise
+#: by about a millimetre together, a nose wrinkler lifts the chin with the lip), the
+#: largest such part need not be the still one.
+ANCHOR_PARTS = ("bridge", "temples", "canthi")
 
 
 def residual_rigid_motion(points, motion, prior, *, anchor=None, iterations: int = 10, tukey_factor: float = 3.0,
