@@ -276,8 +276,6 @@ _INNER_EYES_MM, _OUTER_EYES_MM = 37.0, 89.0
 
 
 STABLE_PARTS = ("bridge", "forehead", "temples")
-#: Every part :func:`stable_weight` can place: the stable parts and the eye corners.
-KNOWN_PARTS = (*STABLE_PARTS, "canthi")
 
 
 def stable_weight(points, landmarks, parts=STABLE_PARTS, elsewhere: float = STABLE_ELSEWHERE) -> np.ndarray:
@@ -312,10 +310,13 @@ def stable_weight(points, landmarks, parts=STABLE_PARTS, elsewhere: float = STAB
                * smoothstep(*_TEMPLE_SPAN[0], up) * smoothstep(*_TEMPLE_SPAN[1], up))
     found = {"bridge": bridge, "forehead": forehead, "temples": temples}
     if "canthi" in parts:
+        # the corners present (not the saddles that stand in for them above)
         corners = [c for c in inner + outer if np.isfinite(c).all()]
-        found["canthi"] = np.max([smoothstep(_CANTHUS_RADIUS[0] * inner_mm, _CANTHUS_RADIUS[1] * inner_mm,
-                                             np.linalg.norm(p - c, axis=-1)) for c in corners]
-                                 or [np.zeros(up.shape)], axis=0)
+        if corners:
+            nearest = np.min([np.linalg.norm(p - c, axis=-1) for c in corners], axis=0)
+            found["canthi"] = smoothstep(_CANTHUS_RADIUS[0] * inner_mm, _CANTHUS_RADIUS[1] * inner_mm, nearest)
+        else:
+            found["canthi"] = np.zeros(up.shape)
     weight = np.maximum.reduce([*(found[part] for part in parts), np.full(up.shape, float(elsewhere))])
     return np.where(np.isfinite(weight), weight, 0.0)
 
