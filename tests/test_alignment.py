@@ -149,3 +149,9 @@ def test_the_eye_corners_are_anchors_where_a_corner_landmark_is():
     partial = stable_weight(points, missing, ("canthi",), elsewhere=0.0)
     assert np.all(partial[near[0] < 4.0] == 0.0) and np.all(np.isfinite(partial))
     assert np.all(partial[np.min(near[1:], axis=0) < 4.0] == 1.0)
+
+
+def test_stable_weight_refuses_a_part_it_does_not_place():
+    grid = _grid(datasets.make_face(datasets.random_identity(5), None, noise_mm=0.0, seed=1))
+    with pytest.raises(ValueError, match="parts must name.*'chin'"):
+        stable_weight(grid.points, grid.landmarks, ("bridge", "chin"))

@@ -276,6 +276,8 @@ _INNER_EYES_MM, _OUTER_EYES_MM = 37.0, 89.0
 
 
 STABLE_PARTS = ("bridge", "forehead", "temples")
+#: Every part :func:`stable_weight` places: the stable parts and the eye corners.
+PLACED_PARTS = (*STABLE_PARTS, "canthi")
 
 
 def stable_weight(points, landmarks, parts=STABLE_PARTS, elsewhere: float = STABLE_ELSEWHERE) -> np.ndarray:
@@ -284,7 +286,16 @@ def stable_weight(points, landmarks, parts=STABLE_PARTS, elsewhere: float = STAB
     the temples (bone under thin skin), or at the eye corners (``"canthi"``, tied to
     the bone by tendons); ``parts`` names those wanted,
     ``elsewhere`` (:data:`STABLE_ELSEWHERE`) elsewhere, 0 at NaN points. Placed from the
-    eye corners (the nose saddles if they are missing)."""
+    eye corners (the nose saddles if they are missing).
+
+    Raises
+    ------
+    ValueError
+        Naming ``parts``: a part it does not place (:data:`PLACED_PARTS`).
+    """
+    unknown = [part for part in parts if part not in PLACED_PARTS]
+    if unknown:
+        raise ValueError(f"parts must name parts of {PLACED_PARTS}, got {unknown}")
     lm = np.asarray(landmarks, dtype=np.float64)
 
     def corner(name):
