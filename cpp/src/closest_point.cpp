@@ -230,6 +230,7 @@ TPSCORE_INLINE void test_leaf(const SurfaceView& surface, std::int32_t leaf, con
     const double* block = surface.blocks + kBlockSize * static_cast<std::size_t>(surface.block_of[leaf]);
     double squared[kLanes];
     block_squared_distances(block, q, squared);
+    const std::int32_t slot_before = best.slot;
     for (std::int32_t i = node.begin; i < node.end; ++i) {
         const int lane = i - node.begin;
         double d2 = squared[lane];
@@ -243,6 +244,14 @@ TPSCORE_INLINE void test_leaf(const SurfaceView& surface, std::int32_t leaf, con
             best.index = index;
             best.slot = i;
         }
+    }
+    // The winner's corners are read again at the end of the query (the scalar
+    // classification), from an array the traversal does not otherwise touch: fetch
+    // them now, while the descent goes on, rather than stall on them then.
+    if (best.slot != slot_before) {
+        const char* corners = reinterpret_cast<const char*>(surface.corners + 9 * static_cast<std::size_t>(best.slot));
+        __builtin_prefetch(corners);
+        __builtin_prefetch(corners + 9 * sizeof(double) - 1);
     }
 }
 
