@@ -342,31 +342,54 @@ TPSCORE_TARGET_V3 TPSCORE_INLINE __m256d log_avx2(__m256d x, const LogConstantsA
     return _mm256_add_pd(_mm256_fmadd_pd(k, _mm256_set1_pd(0.6931471805599453), minus_log_c), log1p_r);
 }
 
-// accumulate_tps_avx512 for AVX2, 4 queries (one vector) at a time meeting every
-// centre: with 8 or 16 the loop was 4-7 % slower (the 16 registers run short).
+// accumulate_tps_avx512 for AVX2, 8 queries (two vectors) at a time meeting every
+// centre: the two vectors share each centre's and weight's broadcasts and give the
+// core two independent logarithms to overlap. On a Zen 3 core this is 10 % faster than
+// one vector at a time (1.60 against 1.77 ns a pair, one thread, 22,500 x 60; 12 or
+// 16 queries were no better), and each lane's arithmetic is unchanged, so the results
+// are the same bits. (On an AVX-512 core running this AVX2 code, one vector at a time
+// had measured 4-7 % faster; a real AVX2 CPU is what this loop is for.)
 template <int Kdim>
 TPSCORE_TARGET_V3 void accumulate_tps_avx2(const double* qx, const double* qy, const double* qz,
                                            const double* cx, const double* cy, const double* cz,
                                            std::int64_t n, const double* weights, double* acc) {
     const LogConstantsAvx2 table = log_constants_avx2();
     const __m256d tiny = _mm256_set1_pd(std::numeric_limits<double>::min());
-    for (std::int64_t q = 0; q < kBlock; q += 4) {
-        const __m256d x = _mm256_load_pd(qx + q), y = _mm256_load_pd(qy + q), z = _mm256_load_pd(qz + q);
-        __m256d sum[Kdim];
-        for (int c = 0; c < Kdim; ++c) sum[c] = _mm256_loadu_pd(acc + c * kBlock + q);
-        for (std::int64_t j = 0; j < n; ++j) {
-            const __m256d dx = _mm256_sub_pd(x, _mm256_set1_pd(cx[j]));
-            const __m256d dy = _mm256_sub_pd(y, _mm256_set1_pd(cy[j]));
-            const __m256d dz = _mm256_sub_pd(z, _mm256_set1_pd(cz[j]));
-            // d2 + DBL_MIN, as in accumulate_tps_avx512
-            const __m256d d = _mm256_fmadd_pd(dz, dz, _mm256_fmadd_pd(dy, dy, _mm256_fmadd_pd(dx, dx, tiny)));
-            const __m256d u = _mm256_mul_pd(d, log_avx2(d, table));
-            for (int c = 0; c < Kdim; ++c) sum[c] = _mm256_fmadd_pd(_mm256_set1_pd(weights[c * n + j]), u, sum[c]);
+    for (std::int64_t q = 0; q < kBlock; q += 8) {
+        const __m256d x0 = _mm256_load_pd(qx + q), y0 = _mm256_load_pd(qy + q), z0 = _mm256_load_pd(qz + q);
+        const __m256d x1 = _mm256_load_pd(qx + q + 4), y1 = _mm256_load_pd(qy + q + 4),
+                      z1 = _mm256_load_pd(qz + q + 4);
+        __m256d sum0[Kdim], sum1[Kdim];
+        for (int c = 0; c < Kdim; ++c) {
+            sum0[c] = _mm256_loadu_pd(acc + c * kBlock + q);
+            sum1[c] = _mm256_loadu_pd(acc + c * kBlock + q + 4);
         }
-        for (int c = 0; c < Kdim; ++c) _mm256_storeu_pd(acc + c * kBlock + q, sum[c]);
+        for (std::int64_t j = 0; j < n; ++j) {
+            const __m256d centre_x = _mm256_set1_pd(cx[j]), centre_y = _mm256_set1_pd(cy[j]),
+                          centre_z = _mm256_set1_pd(cz[j]);
+            // d2 + DBL_MIN, as in accumulate_tps_avx512
+            __m256d dx = _mm256_sub_pd(x0, centre_x), dy = _mm256_sub_pd(y0, centre_y),
+                    dz = _mm256_sub_pd(z0, centre_z);
+            const __m256d d0 = _mm256_fmadd_pd(dz, dz, _mm256_fmadd_pd(dy, dy, _mm256_fmadd_pd(dx, dx, tiny)));
+            dx = _mm256_sub_pd(x1, centre_x);
+            dy = _mm256_sub_pd(y1, centre_y);
+            dz = _mm256_sub_pd(z1, centre_z);
+            const __m256d d1 = _mm256_fmadd_pd(dz, dz, _mm256_fmadd_pd(dy, dy, _mm256_fmadd_pd(dx, dx, tiny)));
+            const __m256d u0 = _mm256_mul_pd(d0, log_avx2(d0, table));
+            const __m256d u1 = _mm256_mul_pd(d1, log_avx2(d1, table));
+            for (int c = 0; c < Kdim; ++c) {
+                const __m256d w = _mm256_set1_pd(weights[c * n + j]);
+                sum0[c] = _mm256_fmadd_pd(w, u0, sum0[c]);
+                sum1[c] = _mm256_fmadd_pd(w, u1, sum1[c]);
+            }
+        }
+        for (int c = 0; c < Kdim; ++c) {
+            _mm256_storeu_pd(acc + c * kBlock + q, sum0[c]);
+            _mm256_storeu_pd(acc + c * kBlock + q + 4, sum1[c]);
+        }
     }
 }
-static_assert(kBlock % 4 == 0, "accumulate_tps_avx2 takes 4 queries at a time");
+static_assert(kBlock % 8 == 0, "accumulate_tps_avx2 takes 8 queries at a time");
 
 const bool has_avx512 = simd_level() == SimdLevel::avx512;
 const bool has_avx2 = simd_level() == SimdLevel::avx2;
