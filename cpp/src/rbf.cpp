@@ -311,35 +311,51 @@ TPSCORE_TARGET_V3 TPSCORE_INLINE LogConstantsAvx2 log_constants_avx2() {
             load_lanes(log_table_avx2.minus_log_high)};
 }
 
-TPSCORE_TARGET_V3 TPSCORE_INLINE __m256d log_avx2(__m256d x, const LogConstantsAvx2& t) {
-    const __m256i bits = _mm256_castpd_si256(x);
-    // k as a double: the 11 exponent bits put in the mantissa of 2^52 make 2^52 + e exactly.
-    const __m256i biased = _mm256_or_si256(_mm256_srli_epi64(bits, 52), _mm256_set1_epi64x(0x4330000000000000));
-    const __m256d k = _mm256_sub_pd(_mm256_castsi256_pd(biased), _mm256_set1_pd(4503599627370496.0 + 1023.0));
-    const __m256d m = _mm256_castsi256_pd(_mm256_or_si256(
-        _mm256_and_si256(bits, _mm256_set1_epi64x(0x000FFFFFFFFFFFFF)), _mm256_set1_epi64x(0x3FF0000000000000)));
-    // j (mantissa bits 51..49) in the low three bits of each double's low 32-bit lane
-    // (shifted as 64 bits) and of its high lane (shifted as 32 bits): the permute
-    // reads only those three bits of an index.
-    const __m256i j_low = _mm256_srli_epi64(bits, 49), j_high = _mm256_srli_epi32(bits, 17);
-    const __m256i high_lanes_of_c = _mm256_permutevar8x32_epi32(t.reciprocal_high, j_high);
-    const __m256d c = _mm256_castsi256_pd(_mm256_blend_epi32(_mm256_setzero_si256(), high_lanes_of_c, 0xAA));
-    const __m256d minus_log_c = _mm256_castsi256_pd(
-        _mm256_blend_epi32(_mm256_permutevar8x32_epi32(t.minus_log_low, j_low),
-                           _mm256_permutevar8x32_epi32(t.minus_log_high, j_high), 0xAA));
-    const __m256d r = _mm256_fmsub_pd(m, c, _mm256_set1_pd(1.0));  // one rounding, as in log_avx512
-    const __m256d s = _mm256_mul_pd(r, r);
+// log(x) of N vectors, each step taken for all N before the next: written so, the two
+// logarithms of accumulate_tps_avx2 interleave their dependency chains (4 % faster on
+// a Zen 3 core than two calls for one vector, whose chains the core overlapped less).
+template <int N>
+TPSCORE_TARGET_V3 TPSCORE_INLINE void log_avx2(const __m256d* x, const LogConstantsAvx2& t, __m256d* log_x) {
+    __m256d k[N], m[N], c[N], minus_log_c[N];
+    for (int v = 0; v < N; ++v) {
+        const __m256i bits = _mm256_castpd_si256(x[v]);
+        // k as a double: the 11 exponent bits put in the mantissa of 2^52 make 2^52 + e exactly.
+        const __m256i biased =
+            _mm256_or_si256(_mm256_srli_epi64(bits, 52), _mm256_set1_epi64x(0x4330000000000000));
+        k[v] = _mm256_sub_pd(_mm256_castsi256_pd(biased), _mm256_set1_pd(4503599627370496.0 + 1023.0));
+        m[v] = _mm256_castsi256_pd(_mm256_or_si256(_mm256_and_si256(bits, _mm256_set1_epi64x(0x000FFFFFFFFFFFFF)),
+                                                   _mm256_set1_epi64x(0x3FF0000000000000)));
+        // j (mantissa bits 51..49) in the low three bits of each double's low 32-bit lane
+        // (shifted as 64 bits) and of its high lane (shifted as 32 bits): the permute
+        // reads only those three bits of an index.
+        const __m256i j_low = _mm256_srli_epi64(bits, 49), j_high = _mm256_srli_epi32(bits, 17);
+        const __m256i high_lanes_of_c = _mm256_permutevar8x32_epi32(t.reciprocal_high, j_high);
+        c[v] = _mm256_castsi256_pd(_mm256_blend_epi32(_mm256_setzero_si256(), high_lanes_of_c, 0xAA));
+        minus_log_c[v] = _mm256_castsi256_pd(
+            _mm256_blend_epi32(_mm256_permutevar8x32_epi32(t.minus_log_low, j_low),
+                               _mm256_permutevar8x32_epi32(t.minus_log_high, j_high), 0xAA));
+    }
     // Q(r) = even(s) + r odd(s): the fit's coefficients of even and of odd powers.
-    __m256d even = _mm256_set1_pd(-0.10065561993520983242), odd = _mm256_set1_pd(0.11182629172946546154);
-    even = _mm256_fmadd_pd(even, s, _mm256_set1_pd(-0.12499828592574585559));
-    odd = _mm256_fmadd_pd(odd, s, _mm256_set1_pd(0.14285527309924379806));
-    even = _mm256_fmadd_pd(even, s, _mm256_set1_pd(-0.16666666832508468936));
-    odd = _mm256_fmadd_pd(odd, s, _mm256_set1_pd(0.20000000180903257892));
-    even = _mm256_fmadd_pd(even, s, _mm256_set1_pd(-0.24999999999956693159));
-    odd = _mm256_fmadd_pd(odd, s, _mm256_set1_pd(0.33333333333286093578));
-    even = _mm256_fmadd_pd(even, s, _mm256_set1_pd(-0.5));
-    const __m256d log1p_r = _mm256_fmadd_pd(_mm256_fmadd_pd(odd, r, even), s, r);
-    return _mm256_add_pd(_mm256_fmadd_pd(k, _mm256_set1_pd(0.6931471805599453), minus_log_c), log1p_r);
+    constexpr double kEven[] = {-0.10065561993520983242, -0.12499828592574585559, -0.16666666832508468936,
+                                -0.24999999999956693159, -0.5};
+    constexpr double kOdd[] = {0.11182629172946546154, 0.14285527309924379806, 0.20000000180903257892,
+                               0.33333333333286093578};
+    __m256d r[N], s[N], even[N], odd[N];
+    for (int v = 0; v < N; ++v) {
+        r[v] = _mm256_fmsub_pd(m[v], c[v], _mm256_set1_pd(1.0));  // one rounding, as in log_avx512
+        s[v] = _mm256_mul_pd(r[v], r[v]);
+        even[v] = _mm256_set1_pd(kEven[0]);
+        odd[v] = _mm256_set1_pd(kOdd[0]);
+    }
+    for (int i = 1; i < 4; ++i) {
+        for (int v = 0; v < N; ++v) even[v] = _mm256_fmadd_pd(even[v], s[v], _mm256_set1_pd(kEven[i]));
+        for (int v = 0; v < N; ++v) odd[v] = _mm256_fmadd_pd(odd[v], s[v], _mm256_set1_pd(kOdd[i]));
+    }
+    for (int v = 0; v < N; ++v) {
+        even[v] = _mm256_fmadd_pd(even[v], s[v], _mm256_set1_pd(kEven[4]));
+        const __m256d log1p_r = _mm256_fmadd_pd(_mm256_fmadd_pd(odd[v], r[v], even[v]), s[v], r[v]);
+        log_x[v] = _mm256_add_pd(_mm256_fmadd_pd(k[v], _mm256_set1_pd(0.6931471805599453), minus_log_c[v]), log1p_r);
+    }
 }
 
 // accumulate_tps_avx512 for AVX2, 8 queries (two vectors) at a time meeting every
@@ -375,8 +391,11 @@ TPSCORE_TARGET_V3 void accumulate_tps_avx2(const double* qx, const double* qy, c
             dy = _mm256_sub_pd(y1, centre_y);
             dz = _mm256_sub_pd(z1, centre_z);
             const __m256d d1 = _mm256_fmadd_pd(dz, dz, _mm256_fmadd_pd(dy, dy, _mm256_fmadd_pd(dx, dx, tiny)));
-            const __m256d u0 = _mm256_mul_pd(d0, log_avx2(d0, table));
-            const __m256d u1 = _mm256_mul_pd(d1, log_avx2(d1, table));
+            const __m256d d[2] = {d0, d1};
+            __m256d log_d[2];
+            log_avx2<2>(d, table, log_d);
+            const __m256d u0 = _mm256_mul_pd(d0, log_d[0]);
+            const __m256d u1 = _mm256_mul_pd(d1, log_d[1]);
             for (int c = 0; c < Kdim; ++c) {
                 const __m256d w = _mm256_set1_pd(weights[c * n + j]);
                 sum0[c] = _mm256_fmadd_pd(w, u0, sum0[c]);
