@@ -12,7 +12,7 @@ from tpscore.face.landmarks import landmark_index
 from tpscore.lattice import BSplineLattice, LatticeSystem, symmetric_blocks
 from tpscore.expression import registration
 from tpscore.expression.landmark_pairs import refine_landmark_motion, refined_pair_trust
-from tpscore.expression.mirror import MirroredMotion
+from tpscore.expression.mirror import Coverage, MirroredMotion
 from tpscore.expression.registration import MotionOptions, grid_normals, register_surfaces, rest_pull_per_node
 from tpscore.face.normalise import FrameTransform
 from tpscore.face.grid import FaceGrid
@@ -472,6 +472,28 @@ def test_mirrored_motion_keeps_its_own_motion_where_the_mirror_is_off_the_face()
         MirroredMotion(field, _x_mirror(), covered, reach_mm=0.0)
     with pytest.raises(ValueError, match="finite"):
         MirroredMotion(field, _x_mirror(), np.full((4, 3), np.nan))
+
+
+def test_coverage_follows_the_distance_to_the_nearest_vertex_within_its_raster():
+    # 1 within reach of a vertex (in x, y), 0 beyond twice the reach, linear between;
+    # the raster's cells are a quarter of the reach, so a weight may be off by the
+    # cells' diagonal over the reach
+    rng = np.random.default_rng(7)
+    vertices = np.column_stack([rng.uniform(-40, 40, 3000), rng.uniform(-50, 50, 3000), rng.normal(0, 5, 3000)])
+    vertices = vertices[np.hypot(vertices[:, 0] - 10, vertices[:, 1]) > 15]  # a hole
+    coverage = Coverage(vertices, reach_mm=3.0)
+    points = np.column_stack([rng.uniform(-60, 60, 5000), rng.uniform(-70, 70, 5000), np.zeros(5000)])
+    nearest = np.min(np.hypot(points[:, None, 0] - vertices[None, :, 0], points[:, None, 1] - vertices[None, :, 1]),
+                     axis=1)
+    exact = np.clip(2.0 - nearest / 3.0, 0.0, 1.0)
+    weights = coverage(points)
+    assert weights.shape == (5000,) and ((weights >= 0) & (weights <= 1)).all()
+    assert np.abs(weights - exact).max() <= 2 * np.sqrt(2) * 0.75 / 3.0
+    assert (weights[nearest < 1e-9] == 1.0).all() and (weights[nearest > 6.0 + 1.5] == 0.0).all()
+    assert (coverage(vertices) == 1.0).all()
+    # points far beyond the raster, in every direction, are not covered
+    far = np.array([[1e6, 0, 0], [-1e6, 0, 0], [0, 1e300, 0], [-1e300, -1e300, 0], [41.0, 51.0, 0.0]])
+    assert (coverage(far)[:4] == 0.0).all()
 
 
 @pytest.mark.parametrize("m", [1, 2, 7, 2000, 2001])

@@ -43,16 +43,20 @@ class Coverage:
         occupied = np.zeros(shape, dtype=bool)
         cells = np.floor((covered[:, :2] - self._origin) / self._cell).astype(int)
         occupied[cells[:, 0], cells[:, 1]] = True
-        self._distance = distance_transform_edt(~occupied) * self._cell
+        # the raster's weights, in a ring of zeros that takes every point beyond it: a
+        # lookup is then one clipped index (this is asked of every point a transfer moves)
+        distance = distance_transform_edt(~occupied) * self._cell
+        self._weight = np.pad(np.clip(2.0 - distance / self.reach_mm, 0.0, 1.0), 1)
 
     def __call__(self, points) -> np.ndarray:
         """(m,) weights in [0, 1] of (m, >=2) finite points."""
         points = np.asarray(points, dtype=np.float64)
-        cells = np.floor((points[:, :2] - self._origin) / self._cell).astype(int)
-        inside = ((cells >= 0) & (cells < self._distance.shape)).all(axis=1)
-        distance = np.full(len(points), np.inf)
-        distance[inside] = self._distance[cells[inside, 0], cells[inside, 1]]
-        return np.clip(2.0 - distance / self.reach_mm, 0.0, 1.0)
+        cells = np.floor((points[:, :2] - self._origin) / self._cell)
+        # cells beyond the raster fall on the ring (clipped as floats: a far point's
+        # cell index may not fit an integer)
+        limit = np.array(self._weight.shape, dtype=np.float64) - 1.0
+        cells = np.clip(cells + 1.0, 0.0, limit).astype(np.intp)
+        return self._weight[cells[:, 0], cells[:, 1]]
 
 
 class MirroredMotion:
