@@ -1,4 +1,8 @@
+import copy
+import gc
 import warnings
+import weakref
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -118,15 +122,74 @@ def test_a_bilateral_expression_averages_its_field_with_the_mirror_image(smile):
     assert not isinstance(tpscore.transfer(gs, ge, gs, "12L").model.dense, MirroredMotion)
 
 
+def _fresh(*grids):
+    """New grid objects with the same arrays: a transfer then finds nothing kept of them
+    (:func:`tpscore.face.normalise.kept_normalisation`)."""
+    return [replace(grid) for grid in grids]
+
+
 def test_what_the_second_thread_prepares_changes_nothing(smile, monkeypatch):
     (_, _, _), (gs, ge, gt) = smile
-    ahead = tpscore.transfer(gs, ge, gt, "12")
+    ahead = tpscore.transfer(*_fresh(gs, ge, gt), "12")
     # the same transfer with nothing made ahead: each face's surface, registration grid
     # and mirror plane are then made where they are used
     monkeypatch.setattr(pipeline, "_prepare", lambda *args: None)
     monkeypatch.setattr(pipeline, "_mirror_planes", lambda *args: None)
-    in_turn = tpscore.transfer(gs, ge, gt, "12")
+    in_turn = tpscore.transfer(*_fresh(gs, ge, gt), "12")
     assert np.array_equal(ahead.vertices, in_turn.vertices, equal_nan=True)
+
+
+def test_transfers_from_the_same_grids_reuse_each_face_and_give_the_same_bits(smile, brows):
+    (_, _, _), (gs, ge, gt) = smile
+    gs, gt = _fresh(gs, gt)
+    first = tpscore.transfer(gs, ge, gt, "12")
+    second = tpscore.transfer(gs, brows[1][1], gt, "1,2")   # another expression of the same source
+    # the neutral faces were normalised once, and what the first transfer computed of
+    # each alone (surfaces, mirror planes, openings, registration grid) is theirs
+    assert second.target is first.target and second.model.source is first.model.source
+    assert "mirror" in first.target._derived and ("registration", TransferOptions().motion) in \
+        first.model.source._derived
+    again = tpscore.transfer(gs, ge, gt, "12")
+    afresh = tpscore.transfer(*_fresh(gs, ge, gt), "12")
+    assert afresh.target is not first.target
+    for result in (again, afresh):
+        assert np.array_equal(result.vertices, first.vertices, equal_nan=True)
+    assert np.array_equal(second.vertices, tpscore.transfer(*_fresh(gs, brows[1][1], gt), "1,2").vertices,
+                          equal_nan=True)
+
+
+def test_a_grid_changed_in_place_is_normalised_again(smile):
+    (_, _, _), (gs, ge, gt) = smile
+    gs, gt = _fresh(gs, gt)
+    first = tpscore.transfer(gs, ge, gt, "12")
+    gt.points[..., 2] += 1.0     # the target moved 1 mm toward the camera, in place
+    moved = tpscore.transfer(gs, ge, gt, "12")
+    assert moved.target is not first.target and moved.model.source is first.model.source
+    assert np.allclose(moved.neutral, gt.points, atol=1e-9, equal_nan=True)
+    assert np.array_equal(moved.vertices, tpscore.transfer(*_fresh(gs, ge, gt), "12").vertices, equal_nan=True)
+    gt.landmarks_detected = True  # not an array, but it changes the transfer too
+    assert tpscore.transfer(gs, ge, gt, "12").target is not moved.target
+
+
+def test_a_normalisation_that_falls_back_warns_every_time(smile):
+    (_, _, _), (gs, ge, gt) = smile
+    lm = gt.landmarks.copy()
+    lm[landmark_index("Chin middle")] = np.nan
+    fewer = gt.with_landmarks(lm)
+    for _ in range(2):
+        with pytest.warns(UserWarning, match="using the similarity normalisation"):
+            tpscore.transfer(gs, ge, fewer, "12", options=TransferOptions.published())
+
+
+def test_what_is_kept_of_a_face_goes_with_its_grid(smile):
+    (_, _, _), (gs, ge, gt) = smile
+    target = copy.deepcopy(gt)
+    face = weakref.ref(tpscore.transfer(gs, ge, target, "12").target)
+    gc.collect()
+    assert face() is not None     # kept while the grid lives
+    del target
+    gc.collect()
+    assert face() is None
 
 
 @pytest.fixture(scope="module")
@@ -183,6 +246,7 @@ def test_a_transfer_from_paths_checks_the_landmarks_of_what_it_read(scan_files, 
 
 def test_a_mirror_plane_that_cannot_be_fitted_is_warned_about_where_it_is_used(smile, monkeypatch):
     (_, _, _), (gs, ge, gt) = smile
+    gs, gt = _fresh(gs, gt)   # planes not fitted yet
 
     fit = modelling.fit_mirror_symmetry
     calls = []
@@ -206,7 +270,7 @@ def test_a_mirror_plane_that_cannot_be_fitted_is_warned_about_where_it_is_used(s
 
     monkeypatch.setattr(modelling, "fit_mirror_symmetry", no_plane)
     with pytest.warns(UserWarning, match="not averaged with its mirror image: no plane here") as caught:
-        result = tpscore.transfer(gs, ge, gt, "12")
+        result = tpscore.transfer(*_fresh(gs, ge, gt), "12")
     # without the source's plane the field is not mirrored, so the target's is not needed
     assert sum("no plane here" in str(w.message) for w in caught) == 1
     assert not isinstance(result.model.dense, MirroredMotion)

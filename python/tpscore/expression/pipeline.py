@@ -24,7 +24,7 @@ from ..face.average_face import AverageFace, load_average_face
 from ..face.grid import FaceGrid, GridMesh
 from ..face.landmarks import MIN_LANDMARKS, N_LANDMARKS
 from ..face.loading import load_scan
-from ..face.normalise import NormalisedFace, normalise_face
+from ..face.normalise import NormalisedFace, kept_normalisation, normalise_face
 from ..face.pose import check_landmarks
 from ..face.regions import region_boundary
 from .action_units import ActionUnitLibrary, shipped_library
@@ -272,7 +272,7 @@ def _stages(method, activations, faces: dict, second_thread, clock: _Clock):
     if not all(isinstance(face, FaceGrid) for face in faces.values()):
         clock.lap("read")
     with _naming("source_neutral"):
-        neutral = normalise_face(neutral_grid, reference_landmarks, method.normalisation)
+        neutral = _normalised(faces["source_neutral"], neutral_grid, reference_landmarks, method.normalisation)
     clock.lap("normalise")
     prepared = second_thread.submit(_prepare, method, neutral, target_ready, activations)
     mirrors = None
@@ -311,7 +311,16 @@ def _scan(name: str, scan: Scan, refuse_landmarks: bool) -> FaceGrid:
 
 def _target_face(target: Scan, reference_landmarks, normalisation: str, refuse_landmarks: bool) -> NormalisedFace:
     with _naming("target"):
-        return normalise_face(_scan("target", target, refuse_landmarks), reference_landmarks, normalisation)
+        return _normalised(target, _scan("target", target, refuse_landmarks), reference_landmarks, normalisation)
+
+
+def _normalised(given: Scan, grid: FaceGrid, reference_landmarks, normalisation: str) -> NormalisedFace:
+    """A neutral face in the reference frame: once per FaceGrid the caller gave, with
+    what later steps compute of it alone (:func:`kept_normalisation`), so that the next
+    transfer from the same grids reuses it; afresh for a scan this transfer read."""
+    if isinstance(given, FaceGrid):
+        return kept_normalisation(grid, reference_landmarks, normalisation)
+    return normalise_face(grid, reference_landmarks, normalisation)
 
 
 def _prepare(method, neutral: NormalisedFace, target: Future, activations) -> None:

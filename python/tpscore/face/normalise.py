@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import threading
 import warnings
+import weakref
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -41,6 +42,7 @@ __all__ = [
     "NORMALISATION_METHODS",
     "NormalisedFace",
     "normalise_face",
+    "kept_normalisation",
 ]
 
 #: The four landmarks of the method's affine normalisation (B's columns).
@@ -283,3 +285,58 @@ def normalise_face(grid: FaceGrid, reference_landmarks, method: str = "similarit
     moved = replace(grid, points=transform.apply(grid.points),
                     landmarks=transform.apply(grid.landmarks))
     return NormalisedFace(moved, transform)
+
+
+class _Kept:
+    """A grid's normalisations, with the grid as it was when they were made."""
+
+    def __init__(self, grid: FaceGrid):
+        # copies of the arrays (about 1 MB for a 150 x 150 grid): an edit in place is
+        # then seen; the image is read-only, so its identity tells
+        self.arrays = [np.array(a, copy=True) for a in _grid_arrays(grid)]
+        self.image, self.scan_frame = grid.image, grid.scan_frame
+        self.detected = grid.landmarks_detected
+        self.faces: dict = {}
+
+    def describes(self, grid: FaceGrid) -> bool:
+        return (grid.image is self.image and grid.scan_frame is self.scan_frame
+                and grid.landmarks_detected == self.detected
+                and all(np.array_equal(a, b, equal_nan=True) for a, b in zip(_grid_arrays(grid), self.arrays)))
+
+
+def _grid_arrays(grid: FaceGrid):
+    return grid.points, grid.mask, grid.uv, grid.landmarks, grid.landmark_vertices
+
+
+_kept: "weakref.WeakKeyDictionary[FaceGrid, _Kept]" = weakref.WeakKeyDictionary()
+_kept_lock = threading.Lock()
+
+
+def kept_normalisation(grid: FaceGrid, reference_landmarks, method: str = "similarity") -> NormalisedFace:
+    """:func:`normalise_face`, made once per grid object, reference and method for as
+    long as the grid lives unchanged.
+
+    A :class:`NormalisedFace` keeps what is computed of the face alone (its surfaces,
+    mirror plane, openings, registration grid), so transfers that share a face (a rig's
+    expressions from one source onto one target, a batch's codes) compute them once: a
+    fifth of a transfer from grids. The grid is compared with a copy of its arrays at
+    each call (a fraction of a millisecond), so one edited in place is normalised again;
+    a normalisation that fell back to the similarity (with a warning) is not kept, so it
+    warns every time. The kept faces go with their grid.
+    """
+    landmarks = np.asarray(reference_landmarks, dtype=np.float64)
+    key = (landmarks.tobytes(), landmarks.shape, method)
+    with _kept_lock:
+        kept = _kept.get(grid)
+        face = kept.faces.get(key) if kept is not None else None
+    if face is not None and kept.describes(grid):
+        return face
+    face = normalise_face(grid, landmarks, method)
+    if face.transform.method != method:
+        return face
+    with _kept_lock:
+        kept = _kept.get(grid)
+        if kept is None or not kept.describes(grid):
+            kept = _kept[grid] = _Kept(grid)
+        # a face made meanwhile by another thread is the one kept and shared
+        return kept.faces.setdefault(key, face)
