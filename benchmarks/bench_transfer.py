@@ -5,7 +5,8 @@ A transfer from files is the user's job: three scans with their colour images
 paths, which reads the target while it measures the source's motion; reading them
 first with tpscore.load_scans is timed beside it. The default follows the skin's
 texture; geometry alone (the same scans without their images) and the method as
-published are timed too. A frame is a scaled add of precomputed displacement fields; it is
+published are timed too, and so is a transfer from neutral grids given again (what was
+computed of each face is kept with it) against fresh copies of them. A frame is a scaled add of precomputed displacement fields; it is
 compared with re-fitting the warps for every frame (what a frame would cost without
 precomputing).
 """
@@ -83,6 +84,33 @@ def test_transfer_geometry_only(benchmark, scan_files):
 def test_transfer_published_method(benchmark, scan_files):
     result = _timed(benchmark, _transfer_from_files, scan_files[0], tpscore.TransferOptions.published())
     assert np.nanmax(np.linalg.norm(result.vertices - result.neutral, axis=2)) > 1.0
+
+
+REUSE_GROUP = "transfer from grids: the same neutral grids again, against fresh copies of them"
+
+
+@pytest.fixture(scope="module")
+def scan_grids(scan_files):
+    return tpscore.load_scans(scan_files[0])
+
+
+@pytest.mark.benchmark(group=REUSE_GROUP)
+def test_tpscore_transfer_from_grids_given_again(benchmark, scan_grids):
+    # a rig's or a batch's case: what was computed of each neutral face is kept with its
+    # grid (kept_normalisation), so every round after the first starts from it
+    neutral, expressive, target = scan_grids
+    first = tpscore.transfer(neutral, expressive, target, "12")
+    result = _timed(benchmark, lambda: tpscore.transfer(neutral, expressive, target, "12"))
+    assert result.target is first.target
+    assert np.array_equal(result.vertices, first.vertices, equal_nan=True)
+
+
+@pytest.mark.benchmark(group=REUSE_GROUP)
+def test_transfer_from_fresh_grids(benchmark, scan_grids):
+    def fresh_transfer():
+        return tpscore.transfer(*[dataclasses.replace(grid) for grid in scan_grids], "12")
+    result = _timed(benchmark, fresh_transfer)
+    assert result.target is not fresh_transfer().target
 
 
 @pytest.fixture(scope="module")
