@@ -192,6 +192,19 @@ def test_what_is_kept_of_a_face_goes_with_its_grid(smile):
     assert face() is None
 
 
+def test_only_the_grids_used_most_recently_keep_their_faces(smile):
+    from tpscore.face import normalise
+    (_, _, _), (gs, ge, gt) = smile
+    (gs,) = _fresh(gs)
+    targets = _fresh(*[gt] * normalise.MAX_KEPT_GRIDS)
+    faces = [tpscore.transfer(gs, ge, target, "12").target for target in targets]
+    # the source and the last targets are the grids used most recently: the first
+    # target's face is no longer kept, the last's is
+    assert tpscore.transfer(gs, ge, targets[-1], "12").target is faces[-1]
+    assert tpscore.transfer(gs, ge, targets[0], "12").target is not faces[0]
+    assert len(normalise._kept) <= normalise.MAX_KEPT_GRIDS
+
+
 @pytest.fixture(scope="module")
 def scan_files(tmp_path_factory):
     """A source's neutral and smiling scans and a target's, as .bnt + .lm3 + .png."""

@@ -19,6 +19,7 @@ from landmarks that every method places things in.
 """
 from __future__ import annotations
 
+import itertools
 import threading
 import warnings
 import weakref
@@ -297,6 +298,7 @@ class _Kept:
         self.image, self.scan_frame = grid.image, grid.scan_frame
         self.detected = grid.landmarks_detected
         self.faces: dict = {}
+        self.used = next(_use_clock)
 
     def describes(self, grid: FaceGrid) -> bool:
         return (grid.image is self.image and grid.scan_frame is self.scan_frame
@@ -308,8 +310,16 @@ def _grid_arrays(grid: FaceGrid):
     return grid.points, grid.mask, grid.uv, grid.landmarks, grid.landmark_vertices
 
 
+#: How many grids' faces are kept: those used most recently. A rig's transfers use two
+#: grids (the source's neutral one and the target), a loop of one source onto many
+#: targets three; each kept face holds 10-30 MB (its surfaces' trees, the registration's
+#: lattice system and factor), so a program that holds a whole database's grids does
+#: not keep them all.
+MAX_KEPT_GRIDS = 4
+
 _kept: "weakref.WeakKeyDictionary[FaceGrid, _Kept]" = weakref.WeakKeyDictionary()
 _kept_lock = threading.Lock()
+_use_clock = itertools.count()
 
 
 def kept_normalisation(grid: FaceGrid, reference_landmarks, method: str = "similarity") -> NormalisedFace:
@@ -318,11 +328,12 @@ def kept_normalisation(grid: FaceGrid, reference_landmarks, method: str = "simil
 
     A :class:`NormalisedFace` keeps what is computed of the face alone (its surfaces,
     mirror plane, openings, registration grid), so transfers that share a face (a rig's
-    expressions from one source onto one target, a batch's codes) compute them once: a
-    fifth of a transfer from grids. The grid is compared with a copy of its arrays at
+    expressions from one source onto one target, a batch's codes) compute them once:
+    about a quarter of a transfer's CPU from grids. The grid is compared with a copy of its arrays at
     each call (a fraction of a millisecond), so one edited in place is normalised again;
     a normalisation that fell back to the similarity (with a warning) is not kept, so it
-    warns every time. The kept faces go with their grid.
+    warns every time. The kept faces go with their grid, and only the
+    :data:`MAX_KEPT_GRIDS` grids used most recently keep theirs.
     """
     landmarks = np.asarray(reference_landmarks, dtype=np.float64)
     key = (landmarks.tobytes(), landmarks.shape, method)
@@ -330,6 +341,7 @@ def kept_normalisation(grid: FaceGrid, reference_landmarks, method: str = "simil
         kept = _kept.get(grid)
         face = kept.faces.get(key) if kept is not None else None
     if face is not None and kept.describes(grid):
+        kept.used = next(_use_clock)
         return face
     face = normalise_face(grid, landmarks, method)
     if face.transform.method != method:
@@ -338,5 +350,8 @@ def kept_normalisation(grid: FaceGrid, reference_landmarks, method: str = "simil
         kept = _kept.get(grid)
         if kept is None or not kept.describes(grid):
             kept = _kept[grid] = _Kept(grid)
+            for least_used, _ in sorted(_kept.items(), key=lambda item: item[1].used)[:-MAX_KEPT_GRIDS]:
+                del _kept[least_used]
+        kept.used = next(_use_clock)
         # a face made meanwhile by another thread is the one kept and shared
         return kept.faces.setdefault(key, face)
