@@ -9,6 +9,7 @@ import pytest
 
 import tpscore
 from tpscore.expression import TransferOptions
+from tpscore.expression.texture import TextureOptions
 from tpscore.face.landmarks import landmark_index
 from tpscore.expression import DenseMotion, MirroredMotion, modelling, pipeline
 from tpscore.face.regions import region_boundary
@@ -155,6 +156,19 @@ def test_transfers_from_the_same_grids_reuse_each_face_and_give_the_same_bits(sm
     for result in (again, afresh):
         assert np.array_equal(result.vertices, first.vertices, equal_nan=True)
     assert np.array_equal(second.vertices, tpscore.transfer(*_fresh(gs, brows[1][1], gt), "1,2").vertices,
+                          equal_nan=True)
+
+
+def test_transfers_with_colour_images_keep_the_neutral_view(scan_files):
+    neutral, expressive, target = tpscore.load_scans(scan_files)
+    first = tpscore.transfer(neutral, expressive, target, "12")
+    seen = ("texture view", TextureOptions())
+    view = first.model.source.derived_so_far(seen)
+    assert view is not None and view is first.model.texture.neutral_view
+    second = tpscore.transfer(neutral, expressive, target, "12")
+    assert second.model.texture.neutral_view is view
+    assert np.array_equal(second.vertices, first.vertices, equal_nan=True)
+    assert np.array_equal(second.vertices, tpscore.transfer(*_fresh(neutral, expressive, target), "12").vertices,
                           equal_nan=True)
 
 

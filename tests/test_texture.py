@@ -2,6 +2,7 @@
 by a known amount, are matched back to that slide, which the geometry cannot see."""
 from __future__ import annotations
 
+import pickle
 import warnings
 
 import numpy as np
@@ -193,6 +194,22 @@ def test_transfer_tracks_texture_when_the_scans_have_images(scans_with_images):
     # the two fields differ: the texture moved the skin along the surface
     moved = np.linalg.norm(result.vertices - plain.vertices, axis=-1)[result.mask]
     assert np.percentile(moved, 99) > 0.3
+
+
+def test_a_neutral_view_seen_before_gives_the_same_matches():
+    neutral, expressive = textured_pair()
+    first = track_texture(neutral, expressive)
+    view = first.neutral_view
+    assert view is not None and view.look.pattern is not None
+    # another expressive scan of the same skin, tracked from the view kept of the neutral one
+    _, other = textured_pair(exposure=0.8)
+    again = track_texture(neutral, other, neutral_view=view)
+    anew = track_texture(neutral, other)
+    assert again.neutral_view is view
+    assert np.array_equal(again.targets, anew.targets, equal_nan=True)
+    assert np.array_equal(again.confidence, anew.confidence)
+    # the view is not pickled with the matches (nor are the tracker's images)
+    assert pickle.loads(pickle.dumps(first)).neutral_view is None
 
 
 def test_refined_matches_follow_a_warp_and_still_find_the_slide():

@@ -223,8 +223,13 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
         if source_neutral.grid.image is not None or source_expressive.grid.image is not None:
             # the eyes' windows are asked for once the whole face is flowed: the
             # openings are found meanwhile (on the transfer's second thread)
+            # the neutral scan's view, kept with the face by the transfer before, if any
+            seen = ("texture view", texture_options)
             texture = track_texture(source_neutral.grid, source_expressive.grid, texture_options,
-                                    lambda: eye_windows(openings(source_neutral).values(), source_neutral.grid))
+                                    lambda: eye_windows(openings(source_neutral).values(), source_neutral.grid),
+                                    neutral_view=source_neutral.derived_so_far(seen))
+            if texture is not None:
+                source_neutral.derived(seen, lambda face: texture.neutral_view)
         else:
             warnings.warn("neither source scan has a colour image: the motion comes from the geometry "
                           "alone, which follows the skin less closely (give each scan its image, a "

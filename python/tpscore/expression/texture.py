@@ -48,7 +48,7 @@ from ..face.grid import FaceGrid
 from ..raster import interpolate_pixels, rasterise
 
 __all__ = ["TextureOptions", "TextureMatches", "TextureWarning", "track_texture", "render_texture",
-           "TexturePlane"]
+           "TexturePlane", "NeutralView"]
 
 
 class TextureWarning(UserWarning):
@@ -174,6 +174,12 @@ class TextureMatches:
         state["_tracker"] = None
         return state
 
+    @property
+    def neutral_view(self) -> "NeutralView | None":
+        """How the neutral scan was seen (None for unpickled matches): what a next
+        tracking from the same neutral scan and options can start from."""
+        return None if self._tracker is None else self._tracker.neutral_view
+
     def refined(self, displacement, regions=None) -> "TextureMatches":
         """The matches found again with the expressive image warped back by a motion
         estimate, so that the flow only has to find what the estimate missed (large,
@@ -264,6 +270,33 @@ class _Look:
     strength: np.ndarray | None = None
 
 
+@dataclass
+class NeutralView:
+    """The neutral scan as texture tracking sees it with one :class:`TextureOptions`:
+    the image plane (as fine as the scan's colour image), the width of the pattern's
+    local mean in the plane's pixels, and the scan's look there (view, pattern, texture
+    strength). It depends on the neutral scan alone, so a transfer keeps it with the
+    neutral face for the next (:attr:`TextureMatches.neutral_view`, and
+    :func:`track_texture`'s ``neutral_view``)."""
+
+    plane: TexturePlane
+    sigma_px: float
+    look: _Look
+
+
+def _plane_of(neutral: FaceGrid, options: TextureOptions):
+    """The image plane of a neutral scan, the pattern's local mean width and the
+    structure tensor's window in its pixels."""
+    pixel_mm = _image_pixel_mm(neutral)
+    valid_points = neutral.points[neutral.mask]
+    # a plane as fine as the neutral image, but never finer than 0.1 mm nor more than
+    # 2,048 pixels across, which bounds the flow's time on denser cameras
+    extent = np.ptp(valid_points[:, :2], axis=0).max()
+    pixel_mm = max(pixel_mm, 0.1, extent / 2048.0)
+    plane = TexturePlane.covering(valid_points, pixel_mm)
+    return plane, options.shading_sigma_mm / pixel_mm, _STRENGTH_WINDOW_MM / pixel_mm
+
+
 def _look(grid: FaceGrid, plane: TexturePlane, sigma_px: float, strength_window_px: float | None = None) -> _Look:
     view = render_texture(grid, plane)
     brightness = float(np.median(view.grey[view.valid])) if view.valid.any() else 0.0
@@ -315,9 +348,11 @@ def _inside(valid: np.ndarray, rim_px: int) -> np.ndarray:
 class _Tracker:
     """The two scans' views and patterns in one plane, ready to be matched (again)."""
 
-    def __init__(self, neutral: FaceGrid, plane: TexturePlane, views, patterns, strength_image: np.ndarray,
+    def __init__(self, neutral: FaceGrid, neutral_view: NeutralView, views, patterns, strength_image: np.ndarray,
                  options: TextureOptions, fine_regions=()):
-        self.neutral, self.plane, self.views, self.options = neutral, plane, views, options
+        plane = neutral_view.plane
+        self.neutral, self.neutral_view, self.plane, self.views, self.options = \
+            neutral, neutral_view, plane, views, options
         self.neutral_pattern = _eight_bit(patterns[0])
         self.expressive_pattern = patterns[1]
         self.expressive_inside = _inside(views[1].valid, options.rim_px).astype(np.float32)
@@ -472,7 +507,7 @@ def _flow_both_ways(first: np.ndarray, second: np.ndarray, finest_scale: int):
 
 
 def track_texture(neutral: FaceGrid, expressive: FaceGrid, options: TextureOptions = TextureOptions(),
-                  fine_regions=()) -> TextureMatches | None:
+                  fine_regions=(), neutral_view: NeutralView | None = None) -> TextureMatches | None:
     """Match each vertex of a neutral grid to the expressive scan by its skin texture.
 
     Parameters
@@ -487,6 +522,9 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid, options: TextureOptio
         rest of the face; so again whenever the matches are refined over the whole face.
         A callable is called once, when the whole face has been flowed, so that the
         caller can find the regions meanwhile.
+    neutral_view : NeutralView, optional
+        The neutral scan as an earlier tracking with these options saw it
+        (:attr:`TextureMatches.neutral_view`): only the expressive scan is rendered then.
 
     Returns
     -------
@@ -500,18 +538,16 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid, options: TextureOptio
             warnings.warn(f"the {name} scan has no colour image: the motion comes from the "
                           "geometry alone", TextureWarning, stacklevel=2)
             return None
-    pixel_mm = _image_pixel_mm(neutral)
-    valid_points = neutral.points[neutral.mask]
-    # a plane as fine as the neutral image, but never finer than 0.1 mm nor more than
-    # 2,048 pixels across, which bounds the flow's time on denser cameras
-    extent = np.ptp(valid_points[:, :2], axis=0).max()
-    pixel_mm = max(pixel_mm, 0.1, extent / 2048.0)
-    plane = TexturePlane.covering(valid_points, pixel_mm)
-    sigma_px = options.shading_sigma_mm / pixel_mm
-    # the two scans are seen on two threads: rendering and filtering release the GIL;
-    # the neutral pattern's texture strength is computed beside the expressive view
-    looks = side_by_side(lambda: _look(neutral, plane, sigma_px, _STRENGTH_WINDOW_MM / pixel_mm),
-                         lambda: _look(expressive, plane, sigma_px))
+    if neutral_view is None:
+        plane, sigma_px, strength_px = _plane_of(neutral, options)
+        # the two scans are seen on two threads: rendering and filtering release the
+        # GIL; the neutral pattern's texture strength is computed beside the expressive view
+        seen = side_by_side(lambda: _look(neutral, plane, sigma_px, strength_px),
+                            lambda: _look(expressive, plane, sigma_px))
+        neutral_view = NeutralView(plane, sigma_px, seen[0])
+        looks = seen
+    else:
+        looks = (neutral_view.look, _look(expressive, neutral_view.plane, neutral_view.sigma_px))
     for name, look in zip(("neutral", "expressive"), looks):
         if look.brightness < 8.0:
             warnings.warn(f"the {name} scan's colour image is too dark (median grey {look.brightness:.1f} of "
@@ -525,7 +561,7 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid, options: TextureOptio
             return None
     if not callable(fine_regions):
         fine_regions = _grid_masks(fine_regions, neutral.points.shape[:2], "fine_regions")
-    tracker = _Tracker(neutral, plane, [look.view for look in looks], [look.pattern for look in looks],
+    tracker = _Tracker(neutral, neutral_view, [look.view for look in looks], [look.pattern for look in looks],
                        looks[0].strength, options, fine_regions)
     matches = tracker.match()
     if matches is None:

@@ -203,6 +203,13 @@ class NormalisedFace:
             raise error
         return value
 
+    def derived_so_far(self, name):
+        """What :meth:`derived` holds under ``name``, or None when nothing (or an
+        error) is held: for what a step finds on its way and keeps with the face only
+        when it succeeds."""
+        value, _ = self._derived.get(name, (None, None))
+        return value
+
     def _valid_index(self) -> np.ndarray:
         """Flat grid indices of the valid vertices (at least 3)."""
         return self.derived("valid vertices", _valid_vertices)
@@ -312,9 +319,9 @@ def _grid_arrays(grid: FaceGrid):
 
 #: How many grids' faces are kept: those used most recently. A rig's transfers use two
 #: grids (the source's neutral one and the target), a loop of one source onto many
-#: targets three; each kept face holds 10-30 MB (its surfaces' trees, the registration's
-#: lattice system and factor), so a program that holds a whole database's grids does
-#: not keep them all.
+#: targets three; each kept face holds 10-50 MB (its surfaces' trees, the registration's
+#: lattice system and factor, the texture tracking's view of it), so a program that
+#: holds a whole database's grids does not keep them all.
 MAX_KEPT_GRIDS = 4
 
 _kept: "weakref.WeakKeyDictionary[FaceGrid, _Kept]" = weakref.WeakKeyDictionary()
@@ -327,7 +334,7 @@ def kept_normalisation(grid: FaceGrid, reference_landmarks, method: str = "simil
     long as the grid lives unchanged.
 
     A :class:`NormalisedFace` keeps what is computed of the face alone (its surfaces,
-    mirror plane, openings, registration grid), so transfers that share a face (a rig's
+    mirror plane, openings, registration grid, texture view), so transfers that share a face (a rig's
     expressions from one source onto one target, a batch's codes) compute them once:
     about a quarter of a transfer's CPU from grids. The grid is compared with a copy of its arrays at
     each call (a fraction of a millisecond), so one edited in place is normalised again;
