@@ -113,9 +113,12 @@ class FidelityJob(TransferJob):
     def transfer(self, source_neutral, source_expressive, target):
         if str(BENCHMARKS) not in sys.path:  # a worker `dask worker` started does not have it
             sys.path.insert(0, str(BENCHMARKS))
-        from texture_ablations import ablation as undo
+        from texture_ablations import ABLATIONS, ablation as undo
 
-        grids = [replace(grid, image=None) if role in self.withheld else grid
+        # an ablation patches a stage whose result a transfer keeps with the neutral faces
+        # (kept_normalisation): it is given copies, which nothing was kept for
+        ablated = self.variant in ABLATIONS
+        grids = [replace(grid, image=None) if role in self.withheld else replace(grid) if ablated else grid
                  for role, grid in zip(("neutral", "expressive", "target"), (source_neutral, source_expressive, target))]
         with warnings.catch_warnings(), undo(self.variant):
             warnings.simplefilter("ignore")  # missing landmarks are expected here
