@@ -210,11 +210,13 @@ def main(argv=None) -> int:
     # which scans keep their colour images in each variant
     withheld = {"geometry-only": {"neutral", "expressive", "target"}, "expressive-without-image": {"expressive"}}
 
-    # every transfer of every variant is one job of one batch; neighbouring jobs share
-    # their three scans (one source, target and AU, all variants), which workers cache
+    # every transfer of every variant is one job of one batch; the jobs of one pair of
+    # subjects are neighbours (every AU, every variant), so that a worker reads the
+    # pair's neutral scans once (its scan cache) and the transfers keep what they
+    # compute of them (kept_normalisation)
     n = len(subjects)
     pairs = [(au, offset, source, subjects[(i + offset) % n])
-             for au in args.aus for i, source in enumerate(subjects) for offset in args.offsets]
+             for i, source in enumerate(subjects) for offset in args.offsets for au in args.aus]
     transfers = [v for v in args.variants if v != "noop"]
 
     def job_name(variant, au, offset, source, target):
