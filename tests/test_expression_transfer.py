@@ -219,6 +219,17 @@ def test_only_the_grids_used_most_recently_keep_their_faces(smile):
     assert len(normalise._kept) <= normalise.MAX_KEPT_GRIDS
 
 
+def test_no_face_is_kept_when_none_may_be(smile, monkeypatch):
+    from tpscore.face import normalise
+    monkeypatch.setattr(normalise, "MAX_KEPT_GRIDS", 0)
+    (_, _, _), (gs, ge, gt) = smile
+    gs, gt = _fresh(gs, gt)
+    first = tpscore.transfer(gs, ge, gt, "12")
+    second = tpscore.transfer(gs, ge, gt, "12")
+    assert second.target is not first.target and len(normalise._kept) == 0
+    assert np.array_equal(second.vertices, first.vertices, equal_nan=True)
+
+
 @pytest.fixture(scope="module")
 def scan_files(tmp_path_factory):
     """A source's neutral and smiling scans and a target's, as .bnt + .lm3 + .png."""

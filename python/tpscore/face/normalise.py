@@ -321,7 +321,7 @@ def _grid_arrays(grid: FaceGrid):
 #: grids (the source's neutral one and the target), a loop of one source onto many
 #: targets three; each kept face holds 10-50 MB (its surfaces' trees, the registration's
 #: lattice system and factor, the texture tracking's view of it), so a program that
-#: holds a whole database's grids does not keep them all.
+#: holds a whole database's grids does not keep them all. 0 keeps none.
 MAX_KEPT_GRIDS = 4
 
 _kept: "weakref.WeakKeyDictionary[FaceGrid, _Kept]" = weakref.WeakKeyDictionary()
@@ -357,7 +357,9 @@ def kept_normalisation(grid: FaceGrid, reference_landmarks, method: str = "simil
         kept = _kept.get(grid)
         if kept is None or not kept.describes(grid):
             kept = _kept[grid] = _Kept(grid)
-            for least_used, _ in sorted(_kept.items(), key=lambda item: item[1].used)[:-MAX_KEPT_GRIDS]:
+            kept.used = next(_use_clock)
+            by_use = sorted(_kept.items(), key=lambda item: item[1].used)
+            for least_used, _ in by_use[:max(len(by_use) - MAX_KEPT_GRIDS, 0)]:
                 del _kept[least_used]
         kept.used = next(_use_clock)
         # a face made meanwhile by another thread is the one kept and shared
