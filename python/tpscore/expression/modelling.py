@@ -221,10 +221,10 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
         # the expressive surface is built while the texture is tracked
         surface = second_thread.submit(source_expressive.surface)
         if source_neutral.grid.image is not None or source_expressive.grid.image is not None:
+            # the neutral scan's view, kept with the face by an earlier transfer, if any
+            seen = ("texture view", texture_options)
             # the eyes' windows are asked for once the whole face is flowed: the
             # openings are found meanwhile (on the transfer's second thread)
-            # the neutral scan's view, kept with the face by the transfer before, if any
-            seen = ("texture view", texture_options)
             texture = track_texture(source_neutral.grid, source_expressive.grid, texture_options,
                                     lambda: eye_windows(openings(source_neutral).values(), source_neutral.grid),
                                     neutral_view=source_neutral.derived_so_far(seen))

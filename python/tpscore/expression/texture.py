@@ -542,10 +542,9 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid, options: TextureOptio
         plane, sigma_px, strength_px = _plane_of(neutral, options)
         # the two scans are seen on two threads: rendering and filtering release the
         # GIL; the neutral pattern's texture strength is computed beside the expressive view
-        seen = side_by_side(lambda: _look(neutral, plane, sigma_px, strength_px),
-                            lambda: _look(expressive, plane, sigma_px))
-        neutral_view = NeutralView(plane, sigma_px, seen[0])
-        looks = seen
+        looks = side_by_side(lambda: _look(neutral, plane, sigma_px, strength_px),
+                             lambda: _look(expressive, plane, sigma_px))
+        neutral_view = NeutralView(plane, sigma_px, looks[0])
     else:
         looks = (neutral_view.look, _look(expressive, neutral_view.plane, neutral_view.sigma_px))
     for name, look in zip(("neutral", "expressive"), looks):
