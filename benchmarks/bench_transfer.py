@@ -6,9 +6,9 @@ paths, which reads the target while it measures the source's motion; reading the
 first with tpscore.load_scans is timed beside it. The default follows the skin's
 texture; geometry alone (the same scans without their images) and the method as
 published are timed too, and so is a transfer from neutral grids given again (what was
-computed of each face is kept with it) against fresh copies of them. A frame is a scaled add of precomputed displacement fields; it is
-compared with re-fitting the warps for every frame (what a frame would cost without
-precomputing).
+computed of each face is kept with it) against fresh copies of them. A frame is a
+scaled add of precomputed displacement fields; it is compared with re-fitting the warps
+for every frame (what a frame would cost without precomputing).
 """
 from __future__ import annotations
 

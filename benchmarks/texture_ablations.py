@@ -2,12 +2,11 @@
 registration term, for the fidelity benchmark to measure what that part is worth.
 
 They are baselines, not options: each patches the stage it undoes for the duration of a
-``with`` block, so the library keeps no switch for a variant that measured worse. A
-transfer keeps what it computes of its neutral grids (the texture view among it), so a
-transfer under an ablation must be given grids nothing was kept for (fidelity.py gives
-copies). (The
+``with`` block, so the library keeps no switch for a variant that measured worse. (The
 consistency check and the rim check are real TextureOptions fields; fidelity.py sets
-them off as option variants.)
+them off as option variants.) A transfer keeps what it computes of its neutral grids,
+the texture view among it, so a transfer under an ablation must be given grids nothing
+was kept for: fidelity.py gives it copies.
 """
 from __future__ import annotations
 

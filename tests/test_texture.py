@@ -210,6 +210,8 @@ def test_a_neutral_view_seen_before_gives_the_same_matches():
     assert np.array_equal(again.confidence, anew.confidence)
     # the view is not pickled with the matches (nor are the tracker's images)
     assert pickle.loads(pickle.dumps(first)).neutral_view is None
+    with pytest.raises(ValueError, match="neutral_view must be a NeutralView"):
+        track_texture(neutral, other, neutral_view={"plane": view.plane})
 
 
 def test_refined_matches_follow_a_warp_and_still_find_the_slide():

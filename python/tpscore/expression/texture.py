@@ -533,6 +533,9 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid, options: TextureOptio
     flow that fails its consistency check on most of the face).
     """
     start = time.perf_counter()
+    if neutral_view is not None and not isinstance(neutral_view, NeutralView):
+        raise ValueError(f"neutral_view must be a NeutralView (TextureMatches.neutral_view of an earlier tracking "
+                         f"of this neutral scan), got {type(neutral_view).__name__}")
     for name, grid in (("neutral", neutral), ("expressive", expressive)):
         if grid.image is None:
             warnings.warn(f"the {name} scan has no colour image: the motion comes from the "

@@ -356,11 +356,11 @@ def kept_normalisation(grid: FaceGrid, reference_landmarks, method: str = "simil
     with _kept_lock:
         kept = _kept.get(grid)
         if kept is None or not kept.describes(grid):
-            kept = _kept[grid] = _Kept(grid)
-            kept.used = next(_use_clock)
+            kept = _kept[grid] = _Kept(grid)   # the most recently used, by its making
             by_use = sorted(_kept.items(), key=lambda item: item[1].used)
             for least_used, _ in by_use[:max(len(by_use) - MAX_KEPT_GRIDS, 0)]:
                 del _kept[least_used]
-        kept.used = next(_use_clock)
+        else:
+            kept.used = next(_use_clock)
         # a face made meanwhile by another thread is the one kept and shared
         return kept.faces.setdefault(key, face)
