@@ -350,14 +350,12 @@ class _Tracker:
 
     def __init__(self, neutral: FaceGrid, neutral_view: NeutralView, views, patterns, strength_image: np.ndarray,
                  options: TextureOptions, fine_regions=()):
-        plane = neutral_view.plane
-        self.neutral, self.neutral_view, self.plane, self.views, self.options = \
-            neutral, neutral_view, plane, views, options
+        self.neutral, self.neutral_view, self.views, self.options = neutral, neutral_view, views, options
         self.neutral_pattern = _eight_bit(patterns[0])
         self.expressive_pattern = patterns[1]
         self.expressive_inside = _inside(views[1].valid, options.rim_px).astype(np.float32)
         self.valid = neutral.mask.reshape(-1)
-        self.begin = plane.pixels(neutral.points.reshape(-1, 3)[self.valid])
+        self.begin = self.plane.pixels(neutral.points.reshape(-1, 3)[self.valid])
         inside = _inside(views[0].valid, options.rim_px).astype(np.float32)
         self.begin_inside = bilinear(inside, self.begin[:, 0], self.begin[:, 1]) > 0.999
         strength = bilinear(strength_image, self.begin[:, 0], self.begin[:, 1])
@@ -376,6 +374,10 @@ class _Tracker:
                 regions = _grid_masks(regions(), self.neutral.points.shape[:2], "fine_regions")
             self._fine_boxes = [self._box(region) for region in regions]
         return self._fine_boxes
+
+    @property
+    def plane(self) -> TexturePlane:
+        return self.neutral_view.plane
 
     def _warp(self, displacement: np.ndarray, box) -> np.ndarray:
         """(h, w, 2) float32 pixel positions, over a box of the plane (rows, then columns,
