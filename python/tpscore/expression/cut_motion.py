@@ -276,8 +276,10 @@ def register_cut(neutral, expressive, openings: list[Opening], register, texture
     closure = {}
     for opening in eyes:
         height = opening.top - opening.bottom
-        closure[opening.name] = np.where(np.isfinite(seen[opening.name].top),
-                                         (opening.top - seen[opening.name].top) / height, 1.0)
+        # a knot where the neutral eye has no height (its corners) gives no share (NaN)
+        share = np.divide(opening.top - seen[opening.name].top, height, out=np.full(len(height), np.nan),
+                          where=height > 0)
+        closure[opening.name] = np.where(np.isfinite(seen[opening.name].top), share, 1.0)
     neutral_xy = _xy_of(grid)
     lid_windows = eye_windows(eyes, grid)
 
