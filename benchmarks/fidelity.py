@@ -189,9 +189,19 @@ def main(argv=None) -> int:
     # pipeline and registration settings from the command line: name=key:value,key:value
     def parse_variant(spec):
         name, _, settings = spec.partition("=")
-        changes = {k: (v == "true") if v in ("true", "false") else float(v) if "." in v or "e" in v else int(v)
-                   for k, v in (item.split(":") for item in settings.split(",") if item)}
+        changes = {k: setting(v) for k, v in (item.split(":") for item in settings.split(",") if item)}
         return name, changes
+
+    def setting(text):
+        """A value given on the command line: a flag, a number or else a word."""
+        if text in ("true", "false"):
+            return text == "true"
+        for kind in (int, float):
+            try:
+                return kind(text)
+            except ValueError:
+                pass
+        return text
 
     for spec in args.option_variants:
         name, changes = parse_variant(spec)

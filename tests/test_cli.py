@@ -65,6 +65,24 @@ def test_errors_are_one_line_not_a_traceback(scan_files, tmp_path, capsys):
     assert main(["transfer", "--source-neutral", str(a), "--source-expr", str(b),
                  "--target", str(c), "--au", "99"]) == 2
     assert "unknown action unit" in capsys.readouterr().err
+    assert main(["transfer", "--source-neutral", str(a), "--source-expr", str(b), "--target", str(c),
+                 "--au", "12", "--method", "published", "--correspondence", "adapted"]) == 2
+    assert "needs method='default'" in capsys.readouterr().err
+
+
+def test_the_adapted_correspondence_is_chosen_on_the_command_line(scan_files, tmp_path, capsys):
+    a, b, c, _ = scan_files
+    outputs = {}
+    for correspondence in ("landmarks", "adapted"):
+        outputs[correspondence] = tmp_path / f"{correspondence}.npz"
+        assert main(["transfer", "--source-neutral", str(a), "--source-expr", str(b), "--target", str(c),
+                     "--au", "12", "--correspondence", correspondence, "--out", str(outputs[correspondence]),
+                     "--quiet"]) == 0
+    with np.load(outputs["landmarks"]) as first, np.load(outputs["adapted"]) as second:
+        moved = np.linalg.norm(second["vertices"] - second["neutral"], axis=2)[second["mask"]]
+        differ = np.linalg.norm(second["vertices"] - first["vertices"], axis=2)[second["mask"]]
+    # the same smile read through another map: as large, not the same bits
+    assert moved.max() > 2.0 and 0.0 < differ.max() < 0.5 * moved.max()
 
 
 def test_version(capsys):

@@ -16,7 +16,8 @@ from tpscore.face.regions import region_boundary
 from tpscore.face.resampling import resample_scan
 from tpscore.showcase import datasets
 
-VARIANTS = {"default": TransferOptions(), "published": TransferOptions.published()}
+VARIANTS = {"default": TransferOptions(), "published": TransferOptions.published(),
+            "adapted": TransferOptions(correspondence="adapted")}
 
 
 def _grid(scan):
@@ -441,6 +442,10 @@ def test_options_are_validated():
         TransferOptions(motion="dense")
     with pytest.raises(ValueError, match="transition_mm"):
         TransferOptions(transition_mm=-1.0)
+    with pytest.raises(ValueError, match="TransferOptions.correspondence"):
+        TransferOptions(correspondence="nearest")
+    with pytest.raises(ValueError, match="TransferOptions.correspondence='adapted' needs method='default'"):
+        replace(TransferOptions.published(), correspondence="adapted")
 
 
 

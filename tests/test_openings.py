@@ -78,9 +78,10 @@ def test_sides_split_at_the_line_and_agree_far_from_it(scans):
     assert cut.tolist() == [1, -1, 0]             # the cut ends at the corners
 
 
-def test_an_open_mouth_is_carried_with_the_lips_apart_and_an_opening_in_the_mesh(scans):
+@pytest.mark.parametrize("correspondence", ["landmarks", "adapted"])
+def test_an_open_mouth_is_carried_with_the_lips_apart_and_an_opening_in_the_mesh(scans, correspondence):
     (source, a), (_, b), (target, c) = scans["source"], scans["surprise"], scans["target"]
-    result = tpscore.transfer(a, b, c, "surprise")
+    result = tpscore.transfer(a, b, c, "surprise", options=tpscore.TransferOptions(correspondence=correspondence))
     assert isinstance(result.model.dense, CutMotion)
     lm = result.target.grid.landmark_vertices
     field = result.field_in_scan().reshape(-1, 3)
@@ -100,9 +101,10 @@ def test_an_open_mouth_is_carried_with_the_lips_apart_and_an_opening_in_the_mesh
     assert len(result.mesh().faces) == len(result.triangles())
 
 
-def test_closed_eyes_are_carried_by_moving_the_upper_lids_down(scans):
+@pytest.mark.parametrize("correspondence", ["landmarks", "adapted"])
+def test_closed_eyes_are_carried_by_moving_the_upper_lids_down(scans, correspondence):
     (_, a), (_, b), (target, c) = scans["source"], scans["closed"], scans["target"]
-    result = tpscore.transfer(a, b, c, "43")
+    result = tpscore.transfer(a, b, c, "43", options=tpscore.TransferOptions(correspondence=correspondence))
     assert isinstance(result.model.dense, CutMotion)
     truth = target.true_positions(result.neutral[result.mask], {"43": 1.0})
     motion = truth - result.neutral[result.mask]

@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 from ..face.grid import MAX_GRID_VERTICES
 from ..face.scan_files import read_scan_landmarks, read_scan_surface
 
-__all__ = ["grid_shape", "integer", "read_scan_surface", "read_scan_landmarks"]
+__all__ = ["grid_shape", "integer", "read_scan_surface", "read_scan_landmarks", "add_transfer_choices",
+           "chosen_transfer_options"]
 
 
 def integer(least: int):
@@ -37,3 +39,21 @@ def grid_shape(text: str) -> tuple[int, int]:
         raise ValueError(f"--grid must have at least 8 rows and columns and at most {MAX_GRID_VERTICES:,} "
                          f"vertices (1024x1024), got {text!r}")
     return h, w
+
+
+def add_transfer_choices(p: argparse.ArgumentParser) -> None:
+    """The options of the transfer method that the transfer, batch and rig commands share."""
+    p.add_argument("--method", choices=["default", "published"], default="default",
+                   help="default (best measured) or published (the method as published)")
+    p.add_argument("--correspondence", choices=["landmarks", "adapted"], default="landmarks",
+                   help="where each target point reads the source's motion: landmarks (a TPS through the 22 "
+                        "landmark pairs; default) or adapted (the target's grid fitted onto the source's "
+                        "scan: closer on most expressions, about a second more per pair of faces)")
+
+
+def chosen_transfer_options(args):
+    """The TransferOptions that --method and --correspondence choose."""
+    from ..expression import TransferOptions
+
+    options = TransferOptions.published() if args.method == "published" else TransferOptions()
+    return replace(options, correspondence=args.correspondence)

@@ -14,7 +14,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .arguments import grid_shape, integer
+from .arguments import add_transfer_choices, chosen_transfer_options, grid_shape, integer
 
 __all__ = ["add_batch_parser", "batch_command"]
 
@@ -35,7 +35,7 @@ def add_batch_parser(sub) -> None:
     p.add_argument("--pairs", default="all", metavar="all|next-K",
                    help="all: every source to every other target; next-K: to the K targets after the source")
     p.add_argument("--magnitude", type=float, default=1.0)
-    p.add_argument("--method", choices=["default", "published"], default="default")
+    add_transfer_choices(p)
     p.add_argument("--grid", default="150x150", help="grid size HxW (default 150x150)")
     p.add_argument("--template", metavar="MESH", help="--kind adapt: the template mesh (default: the shipped template head)")
     p.add_argument("--template-landmarks", metavar="FILE", help="--kind adapt: its landmarks")
@@ -85,7 +85,6 @@ def _shipped_template(out) -> tuple[str, str]:
 
 def _jobs(args):
     from ..batch import adapt_jobs, read_manifest, transfer_jobs
-    from ..batch.jobs import transfer_options
 
     grid = grid_shape(args.grid)
     if (args.folder is None) == (args.manifest is None):
@@ -102,7 +101,7 @@ def _jobs(args):
                           subjects=_subjects(args.subjects, "--subjects"), codes=args.codes)
     return transfer_jobs(args.folder, action_units=args.au, sources=_subjects(args.sources, "--sources"),
                          targets=_subjects(args.targets, "--targets"), pairs=args.pairs,
-                         magnitude=args.magnitude, options=transfer_options(args.method), grid=grid)
+                         magnitude=args.magnitude, options=chosen_transfer_options(args), grid=grid)
 
 
 def batch_command(args) -> int:

@@ -27,13 +27,13 @@ import numpy as np
 
 from .._version import __version__
 from ..batch.scores import surface_distances
-from ..expression import TransferOptions, transfer
+from ..expression import transfer
 from ..face import io
 from ..face.average_face import build_average_face
 from ..face.loading import load_scan, load_scans
 from ..showcase.datasets import afm_faces
 from .adapt import add_adapt_parser, adapt_command
-from .arguments import grid_shape
+from .arguments import add_transfer_choices, chosen_transfer_options, grid_shape
 from .batch import add_batch_parser, batch_command
 from .demo import run_demo
 from .elastic import add_elastic_parser, elastic_command
@@ -56,8 +56,7 @@ def _add_transfer(sub) -> None:
     p.add_argument("--au", required=True,
                    help="AU code(s): 12, 12L, 12R, '1,4,15', 'AU12:0.5', or an emotion (sadness, ...)")
     p.add_argument("--magnitude", type=float, default=1.0, help="m in [0, 1] (default 1)")
-    p.add_argument("--method", choices=["default", "published"], default="default",
-                   help="default (best measured) or published (the method as published)")
+    add_transfer_choices(p)
     p.add_argument("--grid", default="150x150", help="grid size HxW (default 150x150)")
     p.add_argument("--out", metavar="NPZ", help="write vertices/neutral/mask (target scan frame) and more")
     p.add_argument("--mesh", metavar="OBJ|PLY",
@@ -88,8 +87,7 @@ def run_transfer(args) -> int:
     grids = load_scans(paths, [args.source_neutral_landmarks, args.source_expr_landmarks, args.target_landmarks],
                        shape=shape)
     progress(f"read and resampled {', '.join(paths)}")
-    options = TransferOptions.published() if args.method == "published" else TransferOptions()
-    options = replace(options, check_landmarks=not args.no_landmark_check,
+    options = replace(chosen_transfer_options(args), check_landmarks=not args.no_landmark_check,
                       allow_other_person=args.allow_other_person)
     result = transfer(*grids, args.au, args.magnitude, options=options, progress=progress)
     progress(f"transferred {'+'.join(result.animation.labels)} at magnitude {args.magnitude:g}")

@@ -3,6 +3,7 @@ rig that animation tools open (the target's face with one morph target per expre
 
     tpscore rig --source-dir FOLDER --target NEUTRAL.bnt --out rig.glb [--au 12 4 sadness]
                 [--names au|arkit] [--animations] [--grid 150x150] [--method default|published]
+                [--correspondence landmarks|adapted]
 
 FOLDER is one source person's scans: ``bsNNN_<CODE>.bnt`` (the Bosphorus layout) or
 ``source_<name>.bnt`` (as ``tpscore demo`` writes them into ``scans/``), with the neutral
@@ -13,7 +14,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .arguments import grid_shape
+from .arguments import add_transfer_choices, chosen_transfer_options, grid_shape
 from .progress import StepLog
 
 __all__ = ["add_rig_parser", "rig_command"]
@@ -45,13 +46,12 @@ def add_rig_parser(sub) -> None:
     p.add_argument("--animations", action="store_true",
                    help="add one animation per expression (0 -> 1 -> 0 over a second)")
     p.add_argument("--html", metavar="PAGE", help="also write a page of the rig: a slider per morph target")
-    p.add_argument("--method", choices=["default", "published"], default="default")
+    add_transfer_choices(p)
     p.add_argument("--grid", default="150x150", help="grid size HxW (default 150x150)")
     p.add_argument("--quiet", action="store_true")
 
 
 def rig_command(args) -> int:
-    from ..expression import TransferOptions
     from ..rigging import rig, write_gltf
 
     suffix = Path(args.out).suffix.lower()
@@ -67,7 +67,7 @@ def rig_command(args) -> int:
     if not Path(args.out).resolve().parent.is_dir():
         raise ValueError(f"--out: {args.out!r}: the folder {str(Path(args.out).parent)!r} does not exist")
     progress = StepLog(args.quiet)
-    options = TransferOptions.published() if args.method == "published" else TransferOptions()
+    options = chosen_transfer_options(args)
     try:
         made = rig(args.source_neutral, args.source_dir, args.target, action_units=args.au, names=args.names,
                    grid=grid_shape(args.grid), options=options, progress=progress)

@@ -2,7 +2,8 @@
 AU (or whole expression) that a frame scales and adds.
 
 The default reads, at each target vertex, the source's registered motion at the
-corresponding point (the landmark TPS target -> source), weighted by the AU's region and
+corresponding point (the landmark TPS target -> source, or the adapted map:
+:mod:`tpscore.expression.correspondence`), weighted by the AU's region and
 side; a bilateral expression's carried field is averaged with its mirror image across
 the target's own plane too. Where the source's motion is cut at an opening, a target
 vertex takes the side of the target's own opening it lies on, and the target's mesh
@@ -26,6 +27,7 @@ from ..face.normalise import NormalisedFace
 from ..face.openings import opening_cut, opening_sides
 from ..face.regions import region_boundary, region_weight, side_weight, smoothstep
 from .action_units import MAX_WEIGHT, WHOLE_FACE
+from .correspondence import adapted_correspondence, landmark_correspondence
 from .cut_motion import CutMotion, opening_pairs
 from .mirror import MirroredMotion
 from .modelling import ExpressionModel, activation_weight, coverage, mirrored, openings
@@ -165,12 +167,12 @@ def field_labels(activations) -> list[str]:
     return ["+".join(getattr(a, "activation", a).label for a in group) for group in by_region(activations).values()]
 
 
-def _carried(model: ExpressionModel, target: NormalisedFace, merge_mm: float):
+def _carried(model: ExpressionModel, target: NormalisedFace, merge_mm: float, correspondence: str):
     """The source's dense motion read at the target's valid vertices through the landmark
     correspondence (and averaged with its mirror image for a bilateral expression); with
     the share of the upper side each takes where the motion is cut (None otherwise)."""
     dense = model.dense
-    to_source = _target_to_source(model, target, merge_mm)
+    to_source = _target_to_source(model, target, merge_mm, correspondence)
     sides = (dense.upper, dense.lower) if isinstance(dense, CutMotion) else (dense,)
 
     def carried_side(field):
@@ -247,20 +249,21 @@ def _closing(opening, closure: np.ndarray, points: np.ndarray, motion: np.ndarra
 DETECTED_MAP_SMOOTHING = 5000.0
 
 
-def _target_to_source(model: ExpressionModel, target: NormalisedFace, merge_mm: float):
-    """The map of target points onto the source: the landmark TPS, and where the motion
-    is cut at openings, a TPS through the landmarks and the openings' edges too
-    (:func:`tpscore.expression.cut_motion.opening_pairs`); near them rather than
-    through them for detected landmarks (:data:`DETECTED_MAP_SMOOTHING`)."""
+def _target_to_source(model: ExpressionModel, target: NormalisedFace, merge_mm: float, correspondence: str):
+    """The map of target points onto the source (:mod:`tpscore.expression.correspondence`).
+    The landmark TPS goes through the openings' edges too where the motion is cut at
+    them (:func:`tpscore.expression.cut_motion.opening_pairs`), and near its pairs
+    rather than through them for detected landmarks (:data:`DETECTED_MAP_SMOOTHING`).
+    The adapted map needs no edge pairs: it follows the two surfaces' lips and lids."""
+    if correspondence == "adapted":
+        return adapted_correspondence(target, model.source)
+    extra = None
+    if isinstance(model.dense, CutMotion):
+        names = [opening.name for opening in model.dense.openings]
+        extra = opening_pairs(openings(target), target, openings(model.source), model.source, names)
     detected = target.grid.landmarks_detected or model.source.grid.landmarks_detected
     smoothing = DETECTED_MAP_SMOOTHING if detected else 0.0
-    if not isinstance(model.dense, CutMotion):
-        return landmark_map(target.landmarks, model.source.landmarks, merge_mm=merge_mm, what="target -> source",
-                            smoothing=smoothing)
-    names = [opening.name for opening in model.dense.openings]
-    from_edges, to_edges = opening_pairs(openings(target), target, openings(model.source), model.source, names)
-    return landmark_map(target.landmarks, model.source.landmarks, merge_mm=merge_mm, what="target -> source",
-                        extra=(from_edges, to_edges), smoothing=smoothing)
+    return landmark_correspondence(target, model.source, extra, merge_mm, smoothing)
 
 
 #: How far below the upper/lower boundary (mm) the upper face's motion may continue
@@ -304,11 +307,11 @@ def _below_boundary(points, landmarks) -> np.ndarray:
     return -(points[:, 1] - (slope * points[:, 0] + intercept)) / np.hypot(1.0, slope)
 
 
-def _covered(model: ExpressionModel, target: NormalisedFace, merge_mm: float) -> np.ndarray:
+def _covered(model: ExpressionModel, target: NormalisedFace, merge_mm: float, correspondence: str) -> np.ndarray:
     """How well the source's scan covers where each valid target vertex reads its motion
     (or that point's mirror image, for a mirrored field): a whole expression fades where
     the source's scan has no data."""
-    to_source = _target_to_source(model, target, merge_mm)
+    to_source = _target_to_source(model, target, merge_mm, correspondence)
     grid = target.grid
     at = to_source(grid.points.reshape(-1, 3)[grid.mask.ravel()])
     covers = coverage(model.source)
@@ -320,7 +323,7 @@ def _covered(model: ExpressionModel, target: NormalisedFace, merge_mm: float) ->
 
 
 def carry(model: ExpressionModel, target: NormalisedFace, *, transition_mm: float, side_transition_mm: float,
-          upper_spill: float, merge_landmarks_mm: float) -> Animation:
+          upper_spill: float, merge_landmarks_mm: float, correspondence: str = "landmarks") -> Animation:
     """Carry the source's dense motion onto the target and precompute the fields.
 
     AUs of one region modelled from the same expressive scan share one field (labelled
@@ -332,7 +335,7 @@ def carry(model: ExpressionModel, target: NormalisedFace, *, transition_mm: floa
     grid = target.grid
     flat, valid = grid.points.reshape(-1, 3), grid.mask.ravel()
     groups = by_region(model.motions)
-    carried, cut = _carried(model, target, merge_landmarks_mm)
+    carried, cut = _carried(model, target, merge_landmarks_mm, correspondence)
     upper = region_weight("upper", grid.points, target.landmarks, transition_mm).ravel()[valid]
     if "upper" in groups and upper_spill > 0:
         # one scan's motion is shared by its regions: the lower region gives up what
@@ -346,7 +349,7 @@ def carry(model: ExpressionModel, target: NormalisedFace, *, transition_mm: floa
         elif region == "lower":
             region_weights[region] = 1.0 - upper
         elif region == WHOLE_FACE:
-            region_weights[region] = _covered(model, target, merge_landmarks_mm)
+            region_weights[region] = _covered(model, target, merge_landmarks_mm, correspondence)
         else:
             if to_reference is None:
                 to_reference = landmark_map(target.landmarks, model.reference.landmarks, merge_mm=merge_landmarks_mm,

@@ -85,7 +85,8 @@ class DenseTransfer:
     def animate(self, model: ExpressionModel, target: NormalisedFace) -> Animation:
         o = self.options
         return carry(model, target, transition_mm=o.transition_mm, side_transition_mm=o.side_transition_mm,
-                     upper_spill=o.upper_spill, merge_landmarks_mm=o.merge_landmarks_mm)
+                     upper_spill=o.upper_spill, merge_landmarks_mm=o.merge_landmarks_mm,
+                     correspondence=o.correspondence)
 
 
 class PublishedTransfer:

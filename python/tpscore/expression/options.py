@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from .._validation import check_options
+from .correspondence import CORRESPONDENCES
 from .registration import MotionOptions
 from .texture import TextureOptions
 
@@ -46,6 +47,15 @@ class TransferOptions:
     merge_landmarks_mm : float
         Landmarks of one face closer than this are merged before a landmark TPS: the
         inner-lip landmarks of a closed mouth nearly coincide and would fold the map.
+    correspondence : {"landmarks", "adapted"}
+        Where each target point reads the source's motion. ``"landmarks"``: a TPS
+        through the 22 landmark pairs. ``"adapted"``: the target's neutral grid fitted
+        onto the source's neutral scan by the template adaptation
+        (:func:`tpscore.adapt`), which follows the two faces' shapes between the
+        landmarks: better by about 0.01-0.03 in residual ratio on most codes
+        (``benchmarks/FIDELITY.md``), for about a second per pair of faces, paid once
+        per pair of grids a session transfers between (a rig's or a batch's other
+        expressions reuse it).
     motion : MotionOptions
         Settings of the dense registration.
     texture : TextureOptions
@@ -64,6 +74,7 @@ class TransferOptions:
     side_transition_mm: float = 10.0
     upper_spill: float = 0.1
     merge_landmarks_mm: float = 3.0
+    correspondence: str = "landmarks"
     motion: MotionOptions = MotionOptions()
     texture: TextureOptions = TextureOptions()
     check_landmarks: bool = True
@@ -72,7 +83,10 @@ class TransferOptions:
     def __post_init__(self):
         check_options(self, non_negative=("transition_mm", "side_transition_mm", "upper_spill",
                                           "merge_landmarks_mm"),
-                      flags=("mirror_average", "check_landmarks", "allow_other_person"), choices={"method": METHODS})
+                      flags=("mirror_average", "check_landmarks", "allow_other_person"), choices={"method": METHODS, "correspondence": CORRESPONDENCES})
+        if self.method == "published" and self.correspondence != "landmarks":
+            raise ValueError(f"TransferOptions.correspondence={self.correspondence!r} needs method='default': the "
+                             "method as published moves its control points through the landmark TPS")
         if not isinstance(self.motion, MotionOptions):
             raise ValueError(f"TransferOptions.motion must be a MotionOptions, got {type(self.motion).__name__}")
         if not isinstance(self.texture, TextureOptions):
