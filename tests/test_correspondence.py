@@ -100,26 +100,3 @@ def test_an_adapted_transfer_carries_the_expression_as_well_as_the_landmark_map(
         ratios[name] = rms / noop
     # measured 0.335 through the landmarks, 0.327 adapted
     assert ratios["adapted"] < ratios["landmarks"] + 0.01 and ratios["adapted"] < 0.35
-
-
-def test_at_a_closing_eye_the_adapted_map_gives_way_to_the_landmark_map(smile):
-    from tpscore.expression.correspondence import eyes_from_landmarks
-    from tpscore.expression.modelling import openings
-
-    _, (gs, _, gt) = smile
-    source, target = _faces([replace(gs), replace(gt)])
-    eye = openings(target)["left eye"]
-    adapted = adapted_correspondence(target, source)
-    landmark = landmark_correspondence(target, source, None, 3.0, 0.0)
-    blended = eyes_from_landmarks(adapted, landmark, [eye])
-    points = target.grid.points[target.grid.mask]
-    _, weight = eye.sides(points, 2.0)
-    inside, outside = weight == 1.0, weight == 0.0
-    assert inside.sum() > 20 and outside.sum() > 1000
-    mapped = blended(points)
-    np.testing.assert_allclose(mapped[inside], landmark(points[inside]), atol=1e-9)
-    np.testing.assert_array_equal(mapped[outside], adapted(points[outside]))
-    # between, a blend of the two: no farther from either than they are from each other
-    between = ~inside & ~outside
-    gap = np.linalg.norm(landmark(points[between]) - adapted(points[between]), axis=1)
-    assert (np.linalg.norm(mapped[between] - adapted(points[between]), axis=1) <= gap + 1e-9).all()

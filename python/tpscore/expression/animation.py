@@ -27,7 +27,7 @@ from ..face.normalise import NormalisedFace
 from ..face.openings import opening_cut, opening_sides
 from ..face.regions import region_boundary, region_weight, side_weight, smoothstep
 from .action_units import MAX_WEIGHT, WHOLE_FACE
-from .correspondence import adapted_correspondence, eyes_from_landmarks, landmark_correspondence
+from .correspondence import adapted_correspondence, landmark_correspondence
 from .cut_motion import CutMotion, opening_pairs
 from .mirror import MirroredMotion
 from .modelling import ExpressionModel, activation_weight, coverage, mirrored, openings
@@ -251,28 +251,19 @@ DETECTED_MAP_SMOOTHING = 5000.0
 
 def _target_to_source(model: ExpressionModel, target: NormalisedFace, merge_mm: float, correspondence: str):
     """The map of target points onto the source (:mod:`tpscore.expression.correspondence`).
-
     The landmark TPS goes through the openings' edges too where the motion is cut at
     them (:func:`tpscore.expression.cut_motion.opening_pairs`), and near its pairs
     rather than through them for detected landmarks (:data:`DETECTED_MAP_SMOOTHING`).
-    The adapted map follows the two surfaces' lips without edge pairs, but not the
-    lids of an eye that closes: there it gives way to the landmark TPS through the
-    eyes' edges (:func:`tpscore.expression.correspondence.eyes_from_landmarks`).
-    """
-    names = [opening.name for opening in model.dense.openings] if isinstance(model.dense, CutMotion) else []
-    eyes = [opening for name, opening in openings(target).items() if name in names and name != "mouth"] \
-        if names else []
-    if correspondence == "adapted" and not eyes:
+    The adapted map needs no edge pairs: it follows the two surfaces' lips and lids."""
+    if correspondence == "adapted":
         return adapted_correspondence(target, model.source)
     extra = None
-    if names:
+    if isinstance(model.dense, CutMotion):
+        names = [opening.name for opening in model.dense.openings]
         extra = opening_pairs(openings(target), target, openings(model.source), model.source, names)
     detected = target.grid.landmarks_detected or model.source.grid.landmarks_detected
     smoothing = DETECTED_MAP_SMOOTHING if detected else 0.0
-    landmark = landmark_correspondence(target, model.source, extra, merge_mm, smoothing)
-    if correspondence == "adapted":
-        return eyes_from_landmarks(adapted_correspondence(target, model.source), landmark, eyes)
-    return landmark
+    return landmark_correspondence(target, model.source, extra, merge_mm, smoothing)
 
 
 #: How far below the upper/lower boundary (mm) the upper face's motion may continue

@@ -7,9 +7,8 @@ neutral grid onto the source's neutral scan with the template adaptation
 (:func:`tpscore.adapt`: a global RBF through the landmark pairs, then compactly
 supported offsets that pull every visible vertex onto the other surface), so that
 between the landmarks the map follows the two faces' shapes rather than a smooth
-guess; it meets the lips without the edge pairs (they measured no better with them,
-benchmarks/FIDELITY.md), but gives way to the landmark map over an eye that closes
-(:func:`eyes_from_landmarks`). It costs about a second per pair of faces, once:
+guess; it meets the lips and lids without the edge pairs (they measured no better
+with them, benchmarks/FIDELITY.md). It costs about a second per pair of faces, once:
 it is kept with the target face for the source face it was fitted to.
 """
 from __future__ import annotations
@@ -23,10 +22,8 @@ from ..adaptation import AdaptOptions, AdaptationWarning, adapt
 from ..face.grid import FaceGrid
 from ..face.landmarks import landmark_map
 from ..face.normalise import NormalisedFace
-from ..face.openings import SIDE_REACH
 
-__all__ = ["CORRESPONDENCES", "ADAPT_SPACING_MM", "landmark_correspondence", "adapted_correspondence",
-           "eyes_from_landmarks"]
+__all__ = ["CORRESPONDENCES", "ADAPT_SPACING_MM", "landmark_correspondence", "adapted_correspondence"]
 
 #: ``"landmarks"``: the landmark TPS; ``"adapted"``: the target's neutral grid adapted
 #: onto the source's neutral scan (see the module's text).
@@ -58,25 +55,6 @@ def adapted_correspondence(target: NormalisedFace, source: NormalisedFace):
     if owner() is not source:   # another face now has the id of the one it was fitted to
         deform = _fit_adapted(target, source)
     return deform
-
-
-def eyes_from_landmarks(adapted, landmark, eyes):
-    """The adapted map, giving way to the landmark map (through the eyes' edge pairs)
-    over the windows of the target's eyes that the motion is cut at, fading out over
-    the outer part of twice each window (:meth:`tpscore.face.openings.Opening.sides`).
-
-    A closing upper lid moves up to 8 mm within a few millimetres of its rim; the
-    adaptation holds its pairs loosely and slides over an eye's hole, so it can read
-    the source's lid motion a millimetre off its rim (held-out AU43: 0.443 through
-    the adapted map alone, against 0.424 through the landmarks)."""
-    def blended(points):
-        points = np.asarray(points, dtype=np.float64)
-        mapped = adapted(points)
-        weight = np.zeros(len(points))
-        for eye in eyes:
-            weight = np.maximum(weight, eye.sides(points, SIDE_REACH)[1])
-        return mapped + weight[:, None] * (landmark(points) - mapped)
-    return blended
 
 
 def _fit_adapted(target: NormalisedFace, source: NormalisedFace):
