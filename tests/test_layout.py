@@ -29,9 +29,10 @@ ALLOWED = {
     **{method: BASE | {"face"} for method in METHODS},
     SHOWCASE: BASE | {"face"} | METHODS,
 }
-#: The one crossing between methods: the physical skin is the adaptation's last stage
-#: and fits its head with the adaptation's public function.
-METHOD_CROSSINGS = {("physics", "adaptation")}
+#: The two crossings between methods, each through the adaptation's public function: the
+#: physical skin is the adaptation's last stage and fits its head with it; the transfer's
+#: adapted correspondence fits the target's grid onto the source with it.
+METHOD_CROSSINGS = {("physics", "adaptation"), ("expression", "adaptation")}
 
 
 def _sources():
