@@ -37,6 +37,7 @@ import numpy as np
 
 from texture_ablations import ABLATIONS
 from tpscore.batch import TransferJob
+from tpscore.batch.jobs import setting_value
 from shared_data import shared_dir
 from report import write_report
 
@@ -189,19 +190,8 @@ def main(argv=None) -> int:
     # pipeline and registration settings from the command line: name=key:value,key:value
     def parse_variant(spec):
         name, _, settings = spec.partition("=")
-        changes = {k: setting(v) for k, v in (item.split(":") for item in settings.split(",") if item)}
+        changes = {k: setting_value(v) for k, v in (item.split(":") for item in settings.split(",") if item)}
         return name, changes
-
-    def setting(text):
-        """A value given on the command line: a flag, a number or else a word."""
-        if text in ("true", "false"):
-            return text == "true"
-        for kind in (int, float):
-            try:
-                return kind(text)
-            except ValueError:
-                pass
-        return text
 
     for spec in args.option_variants:
         name, changes = parse_variant(spec)

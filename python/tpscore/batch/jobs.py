@@ -523,7 +523,9 @@ _KNOWN_COLUMNS = _TRANSFER_COLUMNS | _ADAPT_COLUMNS | {
     "source_neutral_landmarks", "source_expressive_landmarks", "target_landmarks"}
 
 
-def _value(text: str):
+def setting_value(text: str):
+    """A setting's value written as text (a manifest's options, a benchmark's command
+    line): a flag (``true``/``false``), an int, a float, or else the word itself."""
     lowered = text.strip().lower()
     if lowered in ("true", "false"):
         return lowered == "true"
@@ -542,7 +544,7 @@ def _parse_settings(text: str) -> dict:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
             raise ValueError(f"options item {item!r} is not key=value")
-        out[key.strip()] = _value(value)
+        out[key.strip()] = setting_value(value)
     return out
 
 
