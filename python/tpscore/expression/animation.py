@@ -167,12 +167,12 @@ def field_labels(activations) -> list[str]:
     return ["+".join(getattr(a, "activation", a).label for a in group) for group in by_region(activations).values()]
 
 
-def _carried(model: ExpressionModel, target: NormalisedFace, merge_mm: float, correspondence: str):
-    """The source's dense motion read at the target's valid vertices through the landmark
-    correspondence (and averaged with its mirror image for a bilateral expression); with
-    the share of the upper side each takes where the motion is cut (None otherwise)."""
+def _carried(model: ExpressionModel, target: NormalisedFace, to_source):
+    """The source's dense motion read at the target's valid vertices through the map
+    ``to_source`` (:func:`_target_to_source`; averaged with its mirror image for a
+    bilateral expression); with the share of the upper side each takes where the motion
+    is cut (None otherwise)."""
     dense = model.dense
-    to_source = _target_to_source(model, target, merge_mm, correspondence)
     sides = (dense.upper, dense.lower) if isinstance(dense, CutMotion) else (dense,)
 
     def carried_side(field):
@@ -307,11 +307,10 @@ def _below_boundary(points, landmarks) -> np.ndarray:
     return -(points[:, 1] - (slope * points[:, 0] + intercept)) / np.hypot(1.0, slope)
 
 
-def _covered(model: ExpressionModel, target: NormalisedFace, merge_mm: float, correspondence: str) -> np.ndarray:
+def _covered(model: ExpressionModel, target: NormalisedFace, to_source) -> np.ndarray:
     """How well the source's scan covers where each valid target vertex reads its motion
-    (or that point's mirror image, for a mirrored field): a whole expression fades where
-    the source's scan has no data."""
-    to_source = _target_to_source(model, target, merge_mm, correspondence)
+    through the map ``to_source`` (or that point's mirror image, for a mirrored field): a
+    whole expression fades where the source's scan has no data."""
     grid = target.grid
     at = to_source(grid.points.reshape(-1, 3)[grid.mask.ravel()])
     covers = coverage(model.source)
@@ -335,7 +334,10 @@ def carry(model: ExpressionModel, target: NormalisedFace, *, transition_mm: floa
     grid = target.grid
     flat, valid = grid.points.reshape(-1, 3), grid.mask.ravel()
     groups = by_region(model.motions)
-    carried, cut = _carried(model, target, merge_landmarks_mm, correspondence)
+    # one map for the motion and its coverage: the landmark map's TPS fit and the
+    # openings' edge pairs are made once
+    to_source = _target_to_source(model, target, merge_landmarks_mm, correspondence)
+    carried, cut = _carried(model, target, to_source)
     upper = region_weight("upper", grid.points, target.landmarks, transition_mm).ravel()[valid]
     if "upper" in groups and upper_spill > 0:
         # one scan's motion is shared by its regions: the lower region gives up what
@@ -349,7 +351,7 @@ def carry(model: ExpressionModel, target: NormalisedFace, *, transition_mm: floa
         elif region == "lower":
             region_weights[region] = 1.0 - upper
         elif region == WHOLE_FACE:
-            region_weights[region] = _covered(model, target, merge_landmarks_mm, correspondence)
+            region_weights[region] = _covered(model, target, to_source)
         else:
             if to_reference is None:
                 to_reference = landmark_map(target.landmarks, model.reference.landmarks, merge_mm=merge_landmarks_mm,
