@@ -68,10 +68,10 @@ def _without_common_rendering():
 
 def _full_point_pull():
     """The match pulls its data point onto the matched point in 3D, normal included."""
-    def pull(sample, pairs, targets, prior):
+    def pull(sample, pairs, targets, prior, floor):
         residual = np.linalg.norm(pairs.moved - targets, axis=1)
         used = prior > 0
-        scale = robust_scale(residual[used], motion.TEXTURE_SCALE_FLOOR_MM)
+        scale = robust_scale(residual[used], floor)
         w = np.where(used, tukey_weights(residual, motion.TUKEY_FACTOR * scale), 0.0) * prior
         return w[:, None] * np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0]), w[:, None] * (targets - sample)
 
@@ -80,7 +80,10 @@ def _full_point_pull():
 
 def _without_robust_weight():
     """Every match pulls with its confidence alone, however far off it is."""
-    return mock.patch.object(motion, "TEXTURE_SCALE_FLOOR_MM", 1e9)
+    stack = contextlib.ExitStack()
+    for floor in ("TEXTURE_SCALE_FLOOR_START_MM", "TEXTURE_SCALE_FLOOR_MM"):
+        stack.enter_context(mock.patch.object(motion, floor, 1e9))
+    return stack
 
 
 def _farneback_flow():

@@ -8,6 +8,7 @@ import warnings
 import numpy as np
 import pytest
 
+from tpscore.expression import registration
 from tpscore.expression.registration import MotionOptions, register_surfaces
 from tpscore.face.grid import FaceGrid
 from tpscore.spatial import MeshSurface
@@ -39,7 +40,7 @@ def slide(x, y):
     return SLIDE_MM * np.exp(-(x ** 2 + y ** 2) / (2 * SLIDE_SIGMA_MM ** 2))
 
 
-def textured_pair(*, seed=3, contrast=40.0, exposure=1.0):
+def textured_pair(*, seed=3, contrast=40.0, exposure=1.0, slide=slide):
     """Neutral and expressive grids of one dome; the skin of the expressive one slid by
     ``slide`` along x (and the surface). Images at twice the grid's resolution."""
     xs = np.linspace(-EXTENT, EXTENT, SIZE)
@@ -64,7 +65,7 @@ def textured_pair(*, seed=3, contrast=40.0, exposure=1.0):
     return neutral, expressive
 
 
-def true_motion(points):
+def true_motion(points, slide=slide):
     """Where each neutral point's skin went: x + slide, back on the dome."""
     x, y = points[..., 0], points[..., 1]
     moved_x = x + slide(x, y)
@@ -113,6 +114,32 @@ def test_registration_follows_the_texture_where_geometry_sees_nothing():
     # the dome is the same surface before and after: geometry alone finds no slide
     assert geometry_only > 0.9
     assert with_texture < 0.2, with_texture
+
+
+def test_the_first_iteration_follows_a_block_of_skin_that_slides_far(monkeypatch):
+    # a disc of skin 24 mm across slides 2.5 mm as a block, the rest of the face keeps
+    # still: the still skin sets the matches' robust scale to its lower bound, and a
+    # bound as tight at the first iteration as at the last (0.3 mm: a 0.9 mm cut-off)
+    # drops every match of the block while the field has not moved yet
+    def block(x, y):
+        return 2.5 / (1.0 + np.exp((np.hypot(x, y) - 12.0) / 1.5))
+
+    neutral, expressive = textured_pair(slide=block)
+    mesh = expressive.mesh()
+    surface = MeshSurface(mesh.vertices, mesh.faces)
+    landmarks = np.full((22, 3), np.nan)
+    matches = track_texture(neutral, expressive)
+    centre = neutral.points[SIZE // 2, SIZE // 2]
+    truth = true_motion(centre, block)[0]
+
+    def followed(start_floor):
+        monkeypatch.setattr(registration, "TEXTURE_SCALE_FLOOR_START_MM", start_floor)
+        field = register_surfaces(neutral.points, neutral.mask, landmarks, surface, landmarks,
+                                  MotionOptions(iterations=1), texture=matches)
+        return field(centre[None])[0, 0] / truth
+
+    assert followed(registration.TEXTURE_SCALE_FLOOR_START_MM) > 0.8
+    assert followed(registration.TEXTURE_SCALE_FLOOR_MM) < 0.5
 
 
 def test_no_image_or_a_flat_one_falls_back_with_a_warning():

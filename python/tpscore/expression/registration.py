@@ -58,7 +58,16 @@ TUKEY_FACTOR = 3.0
 #: keeps noise and stray pairs out.
 SCALE_FLOOR_START_MM = 1.0
 SCALE_FLOOR_END_MM = 0.5
-#: The texture pulls' robust scale is at least this (mm): the flow's noise on still skin.
+#: The texture pulls' robust scale is at least this (mm) at the first iteration, falling
+#: geometrically to :data:`TEXTURE_SCALE_FLOOR_MM` at the last, as the geometry's floor
+#: does: on still skin the scale is the flow's noise, and a cut-off of three times that
+#: would drop the largest motions' matches while the stiff field is still far from them
+#: (a lip corner 5 mm off at the first iteration); they joined only in the softer late
+#: iterations, and stretched skin was registered short (benchmarks/FIDELITY.md, "The
+#: texture's robust scale").
+TEXTURE_SCALE_FLOOR_START_MM = 1.0
+#: The texture pulls' robust scale at the last iteration is at least this (mm): the
+#: flow's noise on still skin.
 TEXTURE_SCALE_FLOOR_MM = 0.3
 #: A node's pull toward rest is scaled by exp(-r / REST_SHAPE_RATIO), r the ratio of the
 #: second to the largest eigenvalue of its data points' normal matrix: flat forehead and
@@ -213,14 +222,14 @@ def _fit_measures(along, w) -> tuple[float, float]:
     return rms, float(np.mean(w > 0))
 
 
-def _texture_pull(sample, pairs: _Pairs, targets, prior):
+def _texture_pull(sample, pairs: _Pairs, targets, prior, floor):
     """The texture term: each data point pulls along the expressive surface toward its
     texture match q, the energy w |P (s + u(s) - q)|^2 with P = I - n n^T and w the
-    match's weight times a Tukey weight of its tangential residual. Returns the (m, 6)
-    blocks w P and the (m, 3) right-hand sides w P (q - s). A compiled kernel; NumPy
-    reference: :func:`tpscore.reference.registration.texture_pull_terms`."""
-    return texture_pull_terms(sample, pairs.moved, targets, pairs.normals, prior, TEXTURE_SCALE_FLOOR_MM,
-                              TUKEY_FACTOR)
+    match's weight times a Tukey weight of its tangential residual (scale: the robust
+    scale of the residuals, at least ``floor``). Returns the (m, 6) blocks w P and the
+    (m, 3) right-hand sides w P (q - s). A compiled kernel; NumPy reference:
+    :func:`tpscore.reference.registration.texture_pull_terms`."""
+    return texture_pull_terms(sample, pairs.moved, targets, pairs.normals, prior, float(floor), TUKEY_FACTOR)
 
 
 def _texture_samples(texture, sample_mask, prior, options: MotionOptions):
@@ -323,9 +332,10 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     surface_normals = face_normals(expressive_surface.vertices, expressive_surface.faces)
     stiffness = np.geomspace(options.stiffness_start, options.stiffness_end, options.iterations)
     floors = np.geomspace(SCALE_FLOOR_START_MM, SCALE_FLOOR_END_MM, options.iterations)
+    texture_floors = np.geomspace(TEXTURE_SCALE_FLOOR_START_MM, TEXTURE_SCALE_FLOOR_MM, options.iterations)
     values = np.zeros((n_nodes, 3))
     along, pair_weights = np.zeros(0), np.zeros(0)
-    for iteration, (alpha, floor) in enumerate(zip(stiffness, floors)):
+    for iteration, (alpha, floor, texture_floor) in enumerate(zip(stiffness, floors, texture_floors)):
         if texture is not None and iteration > 0 and iteration == options.texture_refine_after:
             # the stiff first iterations have found the large motions: match the texture
             # again with the expressive image warped back by them
@@ -338,7 +348,7 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
         pairs = _Pairs(moved, closest.points, closest.distances, surface_normals[closest.triangles])
         blocks, rhs, along, pair_weights = _point_to_plane(sample, pairs, prior, floor)
         if texture is not None:
-            texture_blocks, texture_rhs = _texture_pull(sample, pairs, texture_targets, texture_prior)
+            texture_blocks, texture_rhs = _texture_pull(sample, pairs, texture_targets, texture_prior, texture_floor)
             blocks, rhs = blocks + texture_blocks, rhs + texture_rhs
         matrix_values = system.data_term(blocks) + alpha * bending_values + fixed_values
         values = system.solve(matrix_values, (basis.T @ rhs + landmark_rhs).T.ravel()).reshape(3, n_nodes).T.copy()
