@@ -315,6 +315,31 @@ def test_fine_regions_are_matched_at_full_resolution_and_nothing_else_changes():
         track_texture(neutral, expressive, fine_regions=[np.ones((4, 4), dtype=bool)])
 
 
+def test_fine_regions_later_are_matched_only_when_the_matches_are_refined():
+    neutral, expressive = textured_pair()
+    x, y = neutral.points[..., 0], neutral.points[..., 1]
+    eye = np.hypot(x + 15.0, y) < 10.0
+    asked = []
+
+    def regions():
+        asked.append(True)
+        return [eye]
+
+    plain = track_texture(neutral, expressive)
+    now = track_texture(neutral, expressive, fine_regions=[eye])
+    later = track_texture(neutral, expressive, fine_regions=regions, fine_regions_later=True)
+    # the first matches are the whole face's alone, and nobody asked for the regions
+    assert not asked
+    assert np.array_equal(later.targets, plain.targets, equal_nan=True)
+    assert not np.array_equal(now.targets[eye], plain.targets[eye], equal_nan=True)
+    # refined, the region is matched at full resolution, as when it was given up front
+    guess = 0.5 * true_motion(neutral.points)
+    assert np.array_equal(later.refined(guess).targets, now.refined(guess).targets, equal_nan=True)
+    assert asked == [True]
+    with pytest.raises(ValueError, match="fine_regions_later"):
+        track_texture(neutral, expressive, fine_regions_later="yes")
+
+
 def test_fine_regions_can_be_found_while_the_whole_face_is_matched():
     neutral, expressive = textured_pair()
     x, y = neutral.points[..., 0], neutral.points[..., 1]
@@ -334,3 +359,32 @@ def test_fine_regions_can_be_found_while_the_whole_face_is_matched():
     assert asked == [True]  # asked for once, and kept for the refinements
     with pytest.raises(ValueError, match="fine_regions"):
         track_texture(neutral, expressive, fine_regions=lambda: [np.ones((4, 4), dtype=bool)])
+
+
+def test_a_transfer_that_refines_its_matches_has_the_eyes_matched_only_then(monkeypatch, tmp_path):
+    import tpscore
+    from tpscore.expression import modelling
+    from tpscore.showcase.demo_faces import make_demo_scan
+
+    scans = tpscore.load_scans([make_demo_scan(person, expression, seed=seed).write(tmp_path, name)
+                                for person, expression, seed, name in ((0, None, 11, "a"), (0, {"12": 1.0}, 12, "b"),
+                                                                       (1, None, 13, "c"))])
+    asked = []
+    track = modelling.track_texture
+
+    def tracking(*args, **kwargs):
+        asked.append(kwargs["fine_regions_later"])
+        return track(*args, **kwargs)
+
+    monkeypatch.setattr(modelling, "track_texture", tracking)
+    once = tpscore.transfer(*scans, "12")
+    refining = tpscore.TransferOptions(motion=tpscore.MotionOptions(texture_refine_after=4))
+    twice = tpscore.transfer(*scans, "12", options=refining)
+    # a refinement after the last iteration never happens: the eyes are matched up front
+    late = tpscore.TransferOptions(motion=tpscore.MotionOptions(texture_refine_after=10))
+    tpscore.transfer(*scans, "12", options=late)
+    assert asked == [False, True, False]
+    moved = [np.linalg.norm(result.vertices - result.neutral, axis=-1) for result in (once, twice)]
+    assert np.nanmax(moved[1]) > 1.0
+    # the second pass changes the carried motion, not what the transfer is
+    assert np.nanmax(np.abs(moved[1] - moved[0])) < 0.5 * np.nanmax(moved[0])

@@ -224,10 +224,13 @@ def dense_motion(source_neutral: NormalisedFace, source_expressive: NormalisedFa
             # the neutral scan's view, kept with the face by an earlier transfer, if any
             seen = ("texture view", texture_options)
             # the eyes' windows are asked for once the whole face is flowed: the
-            # openings are found meanwhile (on the transfer's second thread)
+            # openings are found meanwhile (on the transfer's second thread); a
+            # registration that refines its matches has the eyes matched then instead,
+            # with the expressive image warped back by the motion found so far
+            refines = 0 < motion.texture_refine_after < motion.iterations
             texture = track_texture(source_neutral.grid, source_expressive.grid, texture_options,
                                     lambda: eye_windows(openings(source_neutral).values(), source_neutral.grid),
-                                    neutral_view=source_neutral.derived_so_far(seen))
+                                    neutral_view=source_neutral.derived_so_far(seen), fine_regions_later=refines)
             if texture is not None:
                 source_neutral.derived(seen, lambda face: texture.neutral_view)
         else:

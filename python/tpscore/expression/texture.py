@@ -396,10 +396,11 @@ class _Tracker:
         where[seen] = self.plane.pixels(view.points[row0:row1, col0:col1][seen] + moved[seen]).astype(np.float32)
         return where
 
-    def match(self, displacement=None, regions=None) -> TextureMatches | None:
+    def match(self, displacement=None, regions=None, fine: bool = True) -> TextureMatches | None:
         """Flow both ways and lift the consistent matches; None when too few are. With
         ``regions`` (grid masks), only their vertices are matched, each region over its
-        own box at full resolution."""
+        own box at full resolution; without, the whole face, then the fine regions
+        unless ``fine`` is False."""
 
         start = time.perf_counter()
 
@@ -410,7 +411,8 @@ class _Tracker:
             yield np.arange(len(self.begin)), (0, self.plane.height, 0, self.plane.width), _FINEST_SCALE
             # then the fine regions again over the whole face, asked for only now so that
             # a caller can find them while the whole face is matched
-            yield from self.fine_boxes
+            if fine:
+                yield from self.fine_boxes
 
         land = self.begin.copy()
         consistency = np.full(len(self.begin), np.inf)
@@ -509,7 +511,8 @@ def _flow_both_ways(first: np.ndarray, second: np.ndarray, finest_scale: int):
 
 
 def track_texture(neutral: FaceGrid, expressive: FaceGrid, options: TextureOptions = TextureOptions(),
-                  fine_regions=(), neutral_view: NeutralView | None = None) -> TextureMatches | None:
+                  fine_regions=(), neutral_view: NeutralView | None = None,
+                  fine_regions_later: bool = False) -> TextureMatches | None:
     """Match each vertex of a neutral grid to the expressive scan by its skin texture.
 
     Parameters
@@ -527,6 +530,10 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid, options: TextureOptio
     neutral_view : NeutralView, optional
         The neutral scan as an earlier tracking with these options saw it
         (:attr:`TextureMatches.neutral_view`): only the expressive scan is rendered then.
+    fine_regions_later : bool, default False
+        Match the fine regions only when the matches are refined over the whole face
+        (:meth:`TextureMatches.refined`), not now: for a registration that refines its
+        matches (``MotionOptions.texture_refine_after``) before its fine iterations.
 
     Returns
     -------
@@ -535,6 +542,8 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid, options: TextureOptio
     flow that fails its consistency check on most of the face).
     """
     start = time.perf_counter()
+    if not isinstance(fine_regions_later, (bool, np.bool_)):
+        raise ValueError(f"fine_regions_later must be True or False, got {fine_regions_later!r}")
     if neutral_view is not None and not isinstance(neutral_view, NeutralView):
         raise ValueError(f"neutral_view must be a NeutralView (TextureMatches.neutral_view of an earlier tracking "
                          f"of this neutral scan), got {type(neutral_view).__name__}")
@@ -567,7 +576,7 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid, options: TextureOptio
         fine_regions = _grid_masks(fine_regions, neutral.points.shape[:2], "fine_regions")
     tracker = _Tracker(neutral, neutral_view, [look.view for look in looks], [look.pattern for look in looks],
                        looks[0].strength, options, fine_regions)
-    matches = tracker.match()
+    matches = tracker.match(fine=not fine_regions_later)
     if matches is None:
         warnings.warn(f"texture tracking matched less than {100 * options.min_matched_fraction:.0f} % of the "
                       "face (the flow failed its consistency check): the motion comes from the geometry "
