@@ -85,6 +85,30 @@ def test_the_adapted_correspondence_is_chosen_on_the_command_line(scan_files, tm
     assert moved.max() > 2.0 and 0.0 < differ.max() < 0.5 * moved.max()
 
 
+def test_a_second_texture_pass_is_chosen_on_the_command_line(tmp_path, capsys):
+    # scans with colour images: the second pass matches their texture again
+    from tpscore.showcase import demo_faces
+
+    a, b, c = (demo_faces.make_demo_scan(person, expression, seed=seed).write(tmp_path, name)
+               for person, expression, seed, name in ((0, None, 11, "a"), (0, {"12": 1.0}, 12, "b"), (1, None, 13, "c")))
+    outputs = {}
+    for passes in ("1", "2"):
+        outputs[passes] = tmp_path / f"passes{passes}.npz"
+        assert main(["transfer", "--source-neutral", str(a), "--source-expr", str(b), "--target", str(c),
+                     "--au", "12", "--texture-passes", passes, "--out", str(outputs[passes]), "--quiet"]) == 0
+    with np.load(outputs["1"]) as first, np.load(outputs["2"]) as second:
+        moved = np.linalg.norm(second["vertices"] - second["neutral"], axis=2)[second["mask"]]
+        differ = np.linalg.norm(second["vertices"] - first["vertices"], axis=2)[second["mask"]]
+    assert moved.max() > 2.0 and 0.0 < differ.max() < 0.5 * moved.max()
+    assert main(["transfer", "--source-neutral", str(a), "--source-expr", str(b), "--target", str(c),
+                 "--au", "12", "--method", "published", "--texture-passes", "2"]) == 2
+    assert "--texture-passes 2 needs --method default" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stopped:
+        main(["transfer", "--source-neutral", str(a), "--source-expr", str(b), "--target", str(c),
+              "--au", "12", "--texture-passes", "3"])
+    assert stopped.value.code == 2 and "--texture-passes: invalid choice" in capsys.readouterr().err
+
+
 def test_version(capsys):
     import tpscore
 
