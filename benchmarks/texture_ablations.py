@@ -81,7 +81,7 @@ def _full_point_pull():
 def _without_robust_weight():
     """Every match pulls with its confidence alone, however far off it is."""
     stack = contextlib.ExitStack()
-    for floor in ("TEXTURE_SCALE_FLOOR_START_MM", "TEXTURE_SCALE_FLOOR_MM"):
+    for floor in ("TEXTURE_SCALE_FLOOR_START_MM", "TEXTURE_SCALE_FLOOR_END_MM"):
         stack.enter_context(mock.patch.object(motion, floor, 1e9))
     return stack
 

@@ -27,6 +27,18 @@ def shared():
 
 
 @pytest.fixture(scope="session")
+def coloured_smile_files(tmp_path_factory):
+    """The demo's smile as three scan files with their colour images (the people and
+    seeds `make demo` uses): the source's neutral and smiling scans, the target's
+    neutral scan."""
+    from tpscore.showcase.demo_faces import make_demo_scan
+
+    folder = tmp_path_factory.mktemp("coloured_smile")
+    return [make_demo_scan(person, expression, seed=seed).write(folder, name)
+            for person, expression, seed, name in ((0, None, 11, "a"), (0, {"12": 1.0}, 12, "b"), (1, None, 13, "c"))]
+
+
+@pytest.fixture(scope="session")
 def chromium():
     """The path of a headless-capable Chromium: Debian's `chromium`, installed with
     apt-get on first use when it is missing and this runs as root (set

@@ -85,12 +85,9 @@ def test_the_adapted_correspondence_is_chosen_on_the_command_line(scan_files, tm
     assert moved.max() > 2.0 and 0.0 < differ.max() < 0.5 * moved.max()
 
 
-def test_a_second_texture_pass_is_chosen_on_the_command_line(tmp_path, capsys):
+def test_a_second_texture_pass_is_chosen_on_the_command_line(coloured_smile_files, tmp_path, capsys):
     # scans with colour images: the second pass matches their texture again
-    from tpscore.showcase import demo_faces
-
-    a, b, c = (demo_faces.make_demo_scan(person, expression, seed=seed).write(tmp_path, name)
-               for person, expression, seed, name in ((0, None, 11, "a"), (0, {"12": 1.0}, 12, "b"), (1, None, 13, "c")))
+    a, b, c = coloured_smile_files
     outputs = {}
     for passes in ("1", "2"):
         outputs[passes] = tmp_path / f"passes{passes}.npz"

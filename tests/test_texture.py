@@ -139,7 +139,7 @@ def test_the_first_iteration_follows_a_block_of_skin_that_slides_far(monkeypatch
         return field(centre[None])[0, 0] / truth
 
     assert followed(registration.TEXTURE_SCALE_FLOOR_START_MM) > 0.8
-    assert followed(registration.TEXTURE_SCALE_FLOOR_MM) < 0.5
+    assert followed(registration.TEXTURE_SCALE_FLOOR_END_MM) < 0.5
 
 
 def test_no_image_or_a_flat_one_falls_back_with_a_warning():
@@ -290,10 +290,23 @@ def test_refined_matches_in_regions_are_made_there_only_and_at_full_resolution()
         first.refined(guess, [np.ones((3, 3), dtype=bool)])
 
 
-def test_fine_regions_are_matched_at_full_resolution_and_nothing_else_changes():
+def _pair_with_an_eye():
+    """The textured pair, a disc of its neutral grid standing for an eye, and a function
+    that returns the disc as the fine regions and notes each call in ``asked``."""
     neutral, expressive = textured_pair()
     x, y = neutral.points[..., 0], neutral.points[..., 1]
     eye = np.hypot(x + 15.0, y) < 10.0
+    asked = []
+
+    def regions():
+        asked.append(True)
+        return [eye]
+
+    return neutral, expressive, eye, regions, asked
+
+
+def test_fine_regions_are_matched_at_full_resolution_and_nothing_else_changes():
+    neutral, expressive, eye, _, _ = _pair_with_an_eye()
     plain = track_texture(neutral, expressive)
     fine = track_texture(neutral, expressive, fine_regions=[eye])
     # outside the region the matches are the plain ones, bit for bit
@@ -316,15 +329,7 @@ def test_fine_regions_are_matched_at_full_resolution_and_nothing_else_changes():
 
 
 def test_fine_regions_later_are_matched_only_when_the_matches_are_refined():
-    neutral, expressive = textured_pair()
-    x, y = neutral.points[..., 0], neutral.points[..., 1]
-    eye = np.hypot(x + 15.0, y) < 10.0
-    asked = []
-
-    def regions():
-        asked.append(True)
-        return [eye]
-
+    neutral, expressive, eye, regions, asked = _pair_with_an_eye()
     plain = track_texture(neutral, expressive)
     now = track_texture(neutral, expressive, fine_regions=[eye])
     later = track_texture(neutral, expressive, fine_regions=regions, fine_regions_later=True)
@@ -341,15 +346,7 @@ def test_fine_regions_later_are_matched_only_when_the_matches_are_refined():
 
 
 def test_fine_regions_can_be_found_while_the_whole_face_is_matched():
-    neutral, expressive = textured_pair()
-    x, y = neutral.points[..., 0], neutral.points[..., 1]
-    eye = np.hypot(x + 15.0, y) < 10.0
-    asked = []
-
-    def regions():
-        asked.append(True)
-        return [eye]
-
+    neutral, expressive, eye, regions, asked = _pair_with_an_eye()
     given = track_texture(neutral, expressive, fine_regions=[eye])
     found = track_texture(neutral, expressive, fine_regions=regions)
     assert np.array_equal(given.targets, found.targets, equal_nan=True)
@@ -361,14 +358,11 @@ def test_fine_regions_can_be_found_while_the_whole_face_is_matched():
         track_texture(neutral, expressive, fine_regions=lambda: [np.ones((4, 4), dtype=bool)])
 
 
-def test_a_transfer_that_refines_its_matches_has_the_eyes_matched_only_then(monkeypatch, tmp_path):
+def test_a_transfer_that_refines_its_matches_has_the_eyes_matched_only_then(monkeypatch, coloured_smile_files):
     import tpscore
     from tpscore.expression import modelling
-    from tpscore.showcase.demo_faces import make_demo_scan
 
-    scans = tpscore.load_scans([make_demo_scan(person, expression, seed=seed).write(tmp_path, name)
-                                for person, expression, seed, name in ((0, None, 11, "a"), (0, {"12": 1.0}, 12, "b"),
-                                                                       (1, None, 13, "c"))])
+    scans = tpscore.load_scans(coloured_smile_files)
     asked = []
     track = modelling.track_texture
 

@@ -21,6 +21,7 @@ __all__ = [
     "as_array",
     "as_real",
     "as_count",
+    "as_flag",
     "as_vertex_count",
     "as_path",
     "check_finite",
@@ -235,6 +236,14 @@ def as_positive(value, name: str, *, allow_zero: bool = False) -> float:
     return number
 
 
+def as_flag(value, name: str) -> bool:
+    """True or False (a NumPy bool too); ValueError naming `name` otherwise: 0, 1 and
+    "yes" are a caller's slip, not a choice."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
 def as_count(value, name: str, *, least: int = 1, most: int = MAX_C_INT) -> int:
     """A whole number in [least, most]; ValueError naming `name` otherwise (bools,
     floats such as 2.0 and strings are refused)."""
@@ -306,8 +315,7 @@ def check_options(options, *, positive=(), non_negative=(), counts=(), flags=(),
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
             raise ValueError(f"{owner}.{name} must be a whole number >= {least}, got {value!r}")
     for name in flags:
-        if not isinstance(getattr(options, name), (bool, np.bool_)):
-            raise ValueError(f"{owner}.{name} must be True or False, got {getattr(options, name)!r}")
+        as_flag(getattr(options, name), f"{owner}.{name}")
     for name, allowed in (choices or {}).items():
         if getattr(options, name) not in allowed:
             raise ValueError(f"{owner}.{name} must be one of {tuple(allowed)}, got {getattr(options, name)!r}")

@@ -22,7 +22,7 @@ import numpy as np
 
 from . import _core
 from .spatial import _pairs_beyond
-from ._validation import (Immutable, MAX_SPARSE_ENTRIES, as_array, as_points, as_positive, as_values,
+from ._validation import (Immutable, MAX_SPARSE_ENTRIES, as_array, as_flag, as_points, as_positive, as_values,
                           check_result_size, gib)
 
 __all__ = ["CSRBF", "ConvergenceError", "wendland"]
@@ -147,8 +147,7 @@ class CSRBF(Immutable):
         support = as_positive(support, "support")
         smoothing = as_positive(smoothing, "smoothing", allow_zero=True)
         tolerance = as_positive(tolerance, "tolerance")
-        if not isinstance(quadric, (bool, np.bool_)):
-            raise ValueError(f"quadric must be True or False, got {quadric!r}")
+        as_flag(quadric, "quadric")
         if preconditioner not in _PRECONDITIONERS:
             raise ValueError(
                 f"preconditioner must be one of {sorted(_PRECONDITIONERS)}, got {preconditioner!r}")

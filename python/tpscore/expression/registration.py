@@ -59,7 +59,7 @@ TUKEY_FACTOR = 3.0
 SCALE_FLOOR_START_MM = 1.0
 SCALE_FLOOR_END_MM = 0.5
 #: The texture pulls' robust scale is at least this (mm) at the first iteration, falling
-#: geometrically to :data:`TEXTURE_SCALE_FLOOR_MM` at the last, as the geometry's floor
+#: geometrically to :data:`TEXTURE_SCALE_FLOOR_END_MM` at the last, as the geometry's floor
 #: does: on still skin the scale is the flow's noise, and a cut-off of three times that
 #: would drop the largest motions' matches while the stiff field is still far from them
 #: (a lip corner 5 mm off at the first iteration); they joined only in the softer late
@@ -68,7 +68,7 @@ SCALE_FLOOR_END_MM = 0.5
 TEXTURE_SCALE_FLOOR_START_MM = 1.0
 #: The texture pulls' robust scale at the last iteration is at least this (mm): the
 #: flow's noise on still skin.
-TEXTURE_SCALE_FLOOR_MM = 0.3
+TEXTURE_SCALE_FLOOR_END_MM = 0.3
 #: A node's pull toward rest is scaled by exp(-r / REST_SHAPE_RATIO), r the ratio of the
 #: second to the largest eigenvalue of its data points' normal matrix: flat forehead and
 #: cheeks keep the whole pull, the lips, nose and chin are left to the data.
@@ -332,7 +332,7 @@ def register_surfaces(neutral_points, neutral_mask, neutral_landmarks, expressiv
     surface_normals = face_normals(expressive_surface.vertices, expressive_surface.faces)
     stiffness = np.geomspace(options.stiffness_start, options.stiffness_end, options.iterations)
     floors = np.geomspace(SCALE_FLOOR_START_MM, SCALE_FLOOR_END_MM, options.iterations)
-    texture_floors = np.geomspace(TEXTURE_SCALE_FLOOR_START_MM, TEXTURE_SCALE_FLOOR_MM, options.iterations)
+    texture_floors = np.geomspace(TEXTURE_SCALE_FLOOR_START_MM, TEXTURE_SCALE_FLOOR_END_MM, options.iterations)
     values = np.zeros((n_nodes, 3))
     along, pair_weights = np.zeros(0), np.zeros(0)
     for iteration, (alpha, floor, texture_floor) in enumerate(zip(stiffness, floors, texture_floors)):

@@ -42,7 +42,7 @@ import numpy as np
 import cv2
 
 from .._threads import side_by_side
-from .._validation import as_positive
+from .._validation import as_flag, as_positive
 from ..face.image import bilinear, grey_levels
 from ..face.grid import FaceGrid
 from ..raster import interpolate_pixels, rasterise
@@ -542,8 +542,7 @@ def track_texture(neutral: FaceGrid, expressive: FaceGrid, options: TextureOptio
     flow that fails its consistency check on most of the face).
     """
     start = time.perf_counter()
-    if not isinstance(fine_regions_later, (bool, np.bool_)):
-        raise ValueError(f"fine_regions_later must be True or False, got {fine_regions_later!r}")
+    as_flag(fine_regions_later, "fine_regions_later")
     if neutral_view is not None and not isinstance(neutral_view, NeutralView):
         raise ValueError(f"neutral_view must be a NeutralView (TextureMatches.neutral_view of an earlier tracking "
                          f"of this neutral scan), got {type(neutral_view).__name__}")

@@ -15,7 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .._validation import as_array
+from .._validation import as_array, as_flag
 from ..geometry import FrameTransform
 from ..mesh import grid_triangles
 from .image import as_colour_image as _as_colour_image
@@ -140,9 +140,7 @@ class FaceGrid:
         self.landmarks, self.landmark_vertices = landmarks, index
         if self.image is not None:
             self.image = _as_colour_image(self.image)
-        if not isinstance(self.landmarks_detected, (bool, np.bool_)):
-            raise ValueError(f"landmarks_detected must be True or False, got {self.landmarks_detected!r}")
-        self.landmarks_detected = bool(self.landmarks_detected)
+        self.landmarks_detected = as_flag(self.landmarks_detected, "landmarks_detected")
         if self.scan_frame is not None and not isinstance(self.scan_frame, FrameTransform):
             raise ValueError(f"scan_frame must be a FrameTransform or None, got {type(self.scan_frame).__name__}")
 
