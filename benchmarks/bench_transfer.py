@@ -4,7 +4,7 @@ A transfer from files is the user's job: three scans with their colour images
 (tpscore's demo scans: Bosphorus .bnt + .lm3 + .png) given to tpscore.transfer as
 paths, which reads the target while it measures the source's motion; reading them
 first with tpscore.load_scans is timed beside it. The default follows the skin's
-texture; geometry alone (the same scans without their images) and the method as
+texture in two passes, and one pass is timed beside it; geometry alone (the same scans without their images) and the method as
 published are timed too, and so is a transfer from neutral grids given again (what was
 computed of each face is kept with it) against fresh copies of them. A frame is a
 scaled add of precomputed displacement fields; it is compared with re-fitting the warps
@@ -69,6 +69,16 @@ def test_tpscore_transfer_default(benchmark, scan_files):
 @pytest.mark.benchmark(group=GROUP)
 def test_transfer_after_load_scans(benchmark, scan_files):
     result = _timed(benchmark, lambda: tpscore.transfer(*tpscore.load_scans(scan_files[0]), "12"))
+    assert result.model.texture is not None
+    assert np.nanmax(np.linalg.norm(result.vertices - result.neutral, axis=2)) > 1.0
+
+
+@pytest.mark.benchmark(group=GROUP)
+def test_transfer_one_texture_pass(benchmark, scan_files):
+    # the default matches the texture twice (MotionOptions.texture_refine_after=4); once
+    # is the quicker choice (--texture-passes 1)
+    one_pass = tpscore.TransferOptions(motion=tpscore.MotionOptions(texture_refine_after=0))
+    result = _timed(benchmark, _transfer_from_files, scan_files[0], one_pass)
     assert result.model.texture is not None
     assert np.nanmax(np.linalg.norm(result.vertices - result.neutral, axis=2)) > 1.0
 

@@ -185,7 +185,7 @@ def main(argv=None) -> int:
         "default-no-spill": replace(default, upper_spill=0.0),
         "default-hard-seam": replace(default, transition_mm=0.0),
         "default-no-rest": replace(default, motion=replace(default.motion, rest_weight=0.0)),
-        "texture-refined": replace(default, motion=replace(default.motion, texture_refine_after=5)),
+        "one-texture-pass": replace(default, motion=replace(default.motion, texture_refine_after=0)),
     }
     # pipeline and registration settings from the command line: name=key:value,key:value
     def parse_variant(spec):

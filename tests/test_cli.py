@@ -85,21 +85,24 @@ def test_the_adapted_correspondence_is_chosen_on_the_command_line(scan_files, tm
     assert moved.max() > 2.0 and 0.0 < differ.max() < 0.5 * moved.max()
 
 
-def test_a_second_texture_pass_is_chosen_on_the_command_line(coloured_smile_files, tmp_path, capsys):
-    # scans with colour images: the second pass matches their texture again
+def test_the_texture_passes_are_chosen_on_the_command_line(coloured_smile_files, tmp_path, capsys):
+    # scans with colour images: the second pass (the default) matches their texture again
     a, b, c = coloured_smile_files
     outputs = {}
-    for passes in ("1", "2"):
+    for passes in ("1", "2", None):
         outputs[passes] = tmp_path / f"passes{passes}.npz"
+        chosen = [] if passes is None else ["--texture-passes", passes]
         assert main(["transfer", "--source-neutral", str(a), "--source-expr", str(b), "--target", str(c),
-                     "--au", "12", "--texture-passes", passes, "--out", str(outputs[passes]), "--quiet"]) == 0
-    with np.load(outputs["1"]) as first, np.load(outputs["2"]) as second:
+                     "--au", "12", *chosen, "--out", str(outputs[passes]), "--quiet"]) == 0
+    with np.load(outputs["1"]) as first, np.load(outputs["2"]) as second, np.load(outputs[None]) as default:
         moved = np.linalg.norm(second["vertices"] - second["neutral"], axis=2)[second["mask"]]
         differ = np.linalg.norm(second["vertices"] - first["vertices"], axis=2)[second["mask"]]
+        assert np.array_equal(default["vertices"], second["vertices"], equal_nan=True)
     assert moved.max() > 2.0 and 0.0 < differ.max() < 0.5 * moved.max()
-    assert main(["transfer", "--source-neutral", str(a), "--source-expr", str(b), "--target", str(c),
-                 "--au", "12", "--method", "published", "--texture-passes", "2"]) == 2
-    assert "--texture-passes 2 needs --method default" in capsys.readouterr().err
+    for passes in ("1", "2"):
+        assert main(["transfer", "--source-neutral", str(a), "--source-expr", str(b), "--target", str(c),
+                     "--au", "12", "--method", "published", "--texture-passes", passes]) == 2
+        assert f"--texture-passes {passes} needs --method default" in capsys.readouterr().err
     with pytest.raises(SystemExit) as stopped:
         main(["transfer", "--source-neutral", str(a), "--source-expr", str(b), "--target", str(c),
               "--au", "12", "--texture-passes", "3"])

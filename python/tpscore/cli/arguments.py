@@ -41,12 +41,6 @@ def grid_shape(text: str) -> tuple[int, int]:
     return h, w
 
 
-#: After which of the registration's iterations ``--texture-passes 2`` matches the texture
-#: again (``MotionOptions.texture_refine_after``; benchmarks/FIDELITY.md, "A second pass
-#: of the texture").
-SECOND_PASS_AFTER = 4
-
-
 def add_transfer_choices(p: argparse.ArgumentParser) -> None:
     """The options of the transfer method that the transfer, batch and rig commands share."""
     p.add_argument("--method", choices=["default", "published"], default="default",
@@ -55,10 +49,10 @@ def add_transfer_choices(p: argparse.ArgumentParser) -> None:
                    help="where each target point reads the source's motion: landmarks (a TPS through the 22 "
                         "landmark pairs; default) or adapted (the target's grid fitted onto the source's "
                         "scan: closer on most expressions, about a second more per pair of faces)")
-    p.add_argument("--texture-passes", type=int, choices=[1, 2], default=1,
-                   help="2: match the skin's texture again once the registration has found the large "
-                        "motions, with the expressive image warped back by them (closer on skin that "
-                        "stretches far, about a quarter more time; default 1)")
+    p.add_argument("--texture-passes", type=int, choices=[1, 2], default=None,
+                   help="how often the skin's texture is matched: 2 (the default) matches it again once the "
+                        "registration has found the large motions, with the expressive image warped back by "
+                        "them; 1 is about a fifth quicker and follows skin that stretches far less closely")
 
 
 def chosen_transfer_options(args):
@@ -66,9 +60,9 @@ def chosen_transfer_options(args):
     from ..expression import TransferOptions
 
     options = TransferOptions.published() if args.method == "published" else TransferOptions()
-    if args.texture_passes == 2:
-        if args.method == "published":
-            raise ValueError("--texture-passes 2 needs --method default: the method as published registers no "
-                             "dense motion and tracks no texture")
-        options = replace(options, motion=replace(options.motion, texture_refine_after=SECOND_PASS_AFTER))
+    if args.texture_passes is not None and args.method == "published":
+        raise ValueError(f"--texture-passes {args.texture_passes} needs --method default: the method as published "
+                         "registers no dense motion and tracks no texture")
+    if args.texture_passes == 1:
+        options = replace(options, motion=replace(options.motion, texture_refine_after=0))
     return replace(options, correspondence=args.correspondence)

@@ -102,10 +102,10 @@ class MotionOptions:
         Weight of a texture match at full confidence, relative to a point-to-plane pair.
     texture_refine_after : int
         Match the texture again after this many iterations, with the expressive image
-        warped back by the field found so far (0 = never, the default). It finds more of
-        the large, deforming motions (the chin under AU17, the mouth corners under AU14)
-        at the cost of a second flow: on the benchmark 0.006 lower residual ratio and
-        0.008 mm more stray motion under AU17.
+        warped back by the field found so far (default 4; 0 = never, one pass). The
+        second pass finds more of the large, deforming motions (the wide-open jaw, the
+        mouth corners under AU14, skin that stretches far) for about a quarter more
+        time a transfer: benchmarks/FIDELITY.md, "A second pass of the texture".
     """
 
     spacing_mm: float = 8.0
@@ -116,7 +116,7 @@ class MotionOptions:
     landmark_weight: float = 3.0
     rest_weight: float = 0.01
     texture_weight: float = 10.0
-    texture_refine_after: int = 0
+    texture_refine_after: int = 4
 
     def __post_init__(self):
         check_options(self, positive=("spacing_mm", "stiffness_start", "stiffness_end"),
