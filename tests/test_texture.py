@@ -328,6 +328,31 @@ def test_fine_regions_are_matched_at_full_resolution_and_nothing_else_changes():
         track_texture(neutral, expressive, fine_regions=[np.ones((4, 4), dtype=bool)])
 
 
+def test_a_warp_moves_the_pixels_that_see_the_surface_and_only_those():
+    # the warp a refinement flows against, over the whole plane and over a region's box,
+    # against the same sums made over every pixel of the box
+    from tpscore.raster import interpolate_pixels
+
+    neutral, expressive, eye, _, _ = _pair_with_an_eye()
+    tracker = track_texture(neutral, expressive)._tracker
+    view, plane = tracker.views[0], tracker.plane
+    guess = 0.5 * true_motion(neutral.points)
+    for box in [(0, plane.height, 0, plane.width), tracker._box(eye)[1]]:
+        row0, row1, col0, col1 = box
+        moved = interpolate_pixels(np.nan_to_num(guess[neutral.mask]), neutral.mesh().faces,
+                                   view.triangle[row0:row1, col0:col1], view.barycentric[row0:row1, col0:col1])
+        columns, rows = np.meshgrid(np.arange(col0, col1), np.arange(row0, row1))
+        expected = np.stack([columns, rows], axis=-1).astype(np.float32)
+        seen = view.valid[row0:row1, col0:col1]
+        assert seen.any() and (box[0] > 0 or not seen.all())  # the whole plane has pixels off the surface
+        expected[seen] = plane.pixels(view.points[row0:row1, col0:col1][seen] + moved[seen]).astype(np.float32)
+        warp = tracker._warp(guess, box)
+        assert np.array_equal(warp, expected)
+        # the box's layout is kept: a second warp by another motion is made from it
+        assert np.array_equal(tracker._warp(0.0 * guess, box)[~seen], expected[~seen])
+        assert not np.array_equal(tracker._warp(0.0 * guess, box)[seen], expected[seen])
+
+
 def test_fine_regions_later_are_matched_only_when_the_matches_are_refined():
     neutral, expressive, eye, regions, asked = _pair_with_an_eye()
     plain = track_texture(neutral, expressive)

@@ -345,6 +345,32 @@ def _inside(valid: np.ndarray, rim_px: int) -> np.ndarray:
     return cv2.erode(valid.astype(np.uint8), kernel) > 0
 
 
+@dataclass(frozen=True)
+class _WarpLayout:
+    """A box of the neutral view as :meth:`_Tracker._warp` reads it: the flat indices of
+    its pixels that see the surface, their triangles, barycentric weights and surface
+    points, and the box's own pixel positions (float32, (h, w, 2): x, y)."""
+
+    faces: np.ndarray
+    seen: np.ndarray
+    triangle: np.ndarray
+    barycentric: np.ndarray
+    points: np.ndarray
+    identity: np.ndarray
+
+    @classmethod
+    def of(cls, view: "TextureView", faces: np.ndarray, box) -> "_WarpLayout":
+        row0, row1, col0, col1 = box
+        seen = np.flatnonzero(view.valid[row0:row1, col0:col1])
+        triangle = view.triangle[row0:row1, col0:col1].reshape(-1)[seen]
+        barycentric = view.barycentric[row0:row1, col0:col1].reshape(-1, 3)[seen]
+        points = view.points[row0:row1, col0:col1].reshape(-1, 3)[seen]
+        identity = np.empty((row1 - row0, col1 - col0, 2), dtype=np.float32)
+        identity[..., 0] = np.arange(col0, col1, dtype=np.float32)[None, :]
+        identity[..., 1] = np.arange(row0, row1, dtype=np.float32)[:, None]
+        return cls(faces, seen, triangle, barycentric, points, identity)
+
+
 class _Tracker:
     """The two scans' views and patterns in one plane, ready to be matched (again)."""
 
@@ -364,6 +390,11 @@ class _Tracker:
         self.strength_weight = strength / (strength + _STRENGTH_HALF)
         self._fine_regions = fine_regions
         self._fine_boxes = None
+        # what warping a box needs of the neutral view, made once per box: a closing
+        # eye's lids are refined twice on each side, over the same boxes
+        self._mesh_index = np.flatnonzero(self.valid)
+        self._faces = None
+        self._warp_layouts = {}
 
     @property
     def fine_boxes(self) -> list:
@@ -384,16 +415,17 @@ class _Tracker:
         end excluded), where each neutral pixel's skin is expected in the expressive
         image: its surface point moved by the per-vertex displacement (interpolated over
         the neutral grid's triangles; identity off the surface)."""
-        row0, row1, col0, col1 = box
-        view = self.views[0]
-        mesh_index = np.flatnonzero(self.valid)
-        moved = interpolate_pixels(np.nan_to_num(displacement.reshape(-1, 3)[mesh_index]),
-                                   self.neutral.mesh().faces, view.triangle[row0:row1, col0:col1],
-                                   view.barycentric[row0:row1, col0:col1])
-        rows, cols = np.mgrid[row0:row1, col0:col1].astype(np.float32)
-        where = np.stack([cols, rows], axis=-1)
-        seen = view.valid[row0:row1, col0:col1]
-        where[seen] = self.plane.pixels(view.points[row0:row1, col0:col1][seen] + moved[seen]).astype(np.float32)
+        layout = self._warp_layouts.get(box)
+        if layout is None:
+            if self._faces is None:
+                self._faces = self.neutral.mesh().faces
+            layout = self._warp_layouts[box] = _WarpLayout.of(self.views[0], self._faces, box)
+        # only the pixels that see the surface move: the displacement is interpolated
+        # there alone (each pixel's own sum, the same bits as over the whole box)
+        moved = interpolate_pixels(np.nan_to_num(displacement.reshape(-1, 3)[self._mesh_index]), layout.faces,
+                                   layout.triangle, layout.barycentric)
+        where = layout.identity.copy()
+        where.reshape(-1, 2)[layout.seen] = self.plane.pixels(layout.points + moved).astype(np.float32)
         return where
 
     def match(self, displacement=None, regions=None, fine: bool = True) -> TextureMatches | None:
