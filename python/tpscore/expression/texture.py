@@ -390,11 +390,10 @@ class _Tracker:
         self.strength_weight = strength / (strength + _STRENGTH_HALF)
         self._fine_regions = fine_regions
         self._fine_boxes = None
-        # what warping a box needs of the neutral view, made once per box: a closing
-        # eye's lids are refined twice on each side, over the same boxes
+        # what every warp reads of the neutral grid (the layouts of the boxes are not
+        # kept: the matches, and this tracker with them, live as long as a result)
         self._mesh_index = np.flatnonzero(self.valid)
         self._faces = None
-        self._warp_layouts = {}
 
     @property
     def fine_boxes(self) -> list:
@@ -415,11 +414,9 @@ class _Tracker:
         end excluded), where each neutral pixel's skin is expected in the expressive
         image: its surface point moved by the per-vertex displacement (interpolated over
         the neutral grid's triangles; identity off the surface)."""
-        layout = self._warp_layouts.get(box)
-        if layout is None:
-            if self._faces is None:
-                self._faces = self.neutral.mesh().faces
-            layout = self._warp_layouts[box] = _WarpLayout.of(self.views[0], self._faces, box)
+        if self._faces is None:
+            self._faces = self.neutral.mesh().faces
+        layout = _WarpLayout.of(self.views[0], self._faces, box)
         # only the pixels that see the surface move: the displacement is interpolated
         # there alone (each pixel's own sum, the same bits as over the whole box)
         moved = interpolate_pixels(np.nan_to_num(displacement.reshape(-1, 3)[self._mesh_index]), layout.faces,
