@@ -351,7 +351,6 @@ class _WarpLayout:
     its pixels that see the surface, their triangles, barycentric weights and surface
     points, and the box's own pixel positions (float32, (h, w, 2): x, y)."""
 
-    faces: np.ndarray
     seen: np.ndarray
     triangle: np.ndarray
     barycentric: np.ndarray
@@ -359,7 +358,7 @@ class _WarpLayout:
     identity: np.ndarray
 
     @classmethod
-    def of(cls, view: "TextureView", faces: np.ndarray, box) -> "_WarpLayout":
+    def of(cls, view: "TextureView", box) -> "_WarpLayout":
         row0, row1, col0, col1 = box
         seen = np.flatnonzero(view.valid[row0:row1, col0:col1])
         triangle = view.triangle[row0:row1, col0:col1].reshape(-1)[seen]
@@ -368,7 +367,7 @@ class _WarpLayout:
         identity = np.empty((row1 - row0, col1 - col0, 2), dtype=np.float32)
         identity[..., 0] = np.arange(col0, col1, dtype=np.float32)[None, :]
         identity[..., 1] = np.arange(row0, row1, dtype=np.float32)[:, None]
-        return cls(faces, seen, triangle, barycentric, points, identity)
+        return cls(seen, triangle, barycentric, points, identity)
 
 
 class _Tracker:
@@ -416,10 +415,10 @@ class _Tracker:
         the neutral grid's triangles; identity off the surface)."""
         if self._faces is None:
             self._faces = self.neutral.mesh().faces
-        layout = _WarpLayout.of(self.views[0], self._faces, box)
+        layout = _WarpLayout.of(self.views[0], box)
         # only the pixels that see the surface move: the displacement is interpolated
         # there alone (each pixel's own sum, the same bits as over the whole box)
-        moved = interpolate_pixels(np.nan_to_num(displacement.reshape(-1, 3)[self._mesh_index]), layout.faces,
+        moved = interpolate_pixels(np.nan_to_num(displacement.reshape(-1, 3)[self._mesh_index]), self._faces,
                                    layout.triangle, layout.barycentric)
         where = layout.identity.copy()
         where.reshape(-1, 2)[layout.seen] = self.plane.pixels(layout.points + moved).astype(np.float32)
