@@ -5,6 +5,8 @@ import pytest
 
 from tpscore.expression.action_units import ActionUnit, ActionUnitLibrary, ControlPoint, default_library
 from tpscore.face.average_face import load_average_face
+from tpscore.face.landmarks import AnchoredPoint, landmark_index
+from tpscore.face.regions import Region
 
 
 @pytest.fixture(scope="module")
@@ -20,8 +22,9 @@ def test_shipped_library_has_every_bosphorus_au_with_its_region(library):
     assert set(library.codes) == BOSPHORUS_AUS
     for code in ("1", "2", "4"):
         assert library[code].region == "upper"
-    for code in ("12", "14", "15", "16", "17", "18", "20", "22", "23", "24", "25", "26", "27", "28", "34"):
+    for code in ("12", "14", "15", "18", "20", "22", "23", "24", "25", "26", "27", "28", "34"):
         assert library[code].region == "lower"
+    assert library["16"].region == library["17"].region == "chin_lower_lip"
     for code in ("5", "7", "43", "44"):
         assert library[code].region == "eyes"
     assert library["6"].region == "eyes_cheeks"
@@ -45,10 +48,39 @@ def test_named_regions_cover_where_their_muscles_act(library):
     inside = landmarks[[13, 16, 10, 11]]  # nose tip, upper lip, the nose's saddles
     assert (nose.weight(inside, landmarks) == 1).all()
     assert nose.weight(landmarks[[20, 21]], landmarks).max() < 1  # lower lip and chin: outside or on the edge
+    # the chin's region holds the lower lip and the chin, not the upper lip above the
+    # lips' line (a chin raiser's smooth field would push it up): 0 from 8 mm above it
+    chin_region = library.regions["chin_lower_lip"]
+    at = [landmark_index(name) for name in ("Upper lip outer middle", "Upper lip inner middle",
+                                            "Lower lip inner middle", "Lower lip outer middle", "Chin middle")]
+    assert (chin_region.weight(landmarks[at[3:]], landmarks) == 1).all()  # the lower lip, the chin
+    lips_line = landmarks[at[1:3]].mean(axis=0)
+    above = lips_line + [[0.0, 2.0, 0.0], [0.0, 8.5, 0.0]]
+    assert 0 < chin_region.weight(above[:1], landmarks)[0] < 1 and chin_region.weight(above[1:], landmarks)[0] == 0
+    assert chin_region.weight(landmarks[at[:1]], landmarks)[0] < 0.5  # the upper lip's outer middle
+    for code in ("16", "17"):  # the published method's control points lie in it
+        xy = library[code].positions_xy(landmarks)
+        assert (chin_region.weight(np.column_stack([xy, np.zeros(len(xy))]), landmarks) > 0.5).all(), code
     # weights fall smoothly: a point just outside a polygon has a weight between 0 and 1
     corner = eyes.corners(landmarks)[0]
     outside = corner.mean(axis=0) + 1.02 * (corner[0] - corner.mean(axis=0))
     assert 0 < eyes.weight(np.append(outside, 0.0)[None], landmarks)[0] <= 1
+
+
+def test_a_region_knows_the_half_of_the_face_it_lies_in(library):
+    landmarks = load_average_face().landmarks
+    assert library.regions["chin_lower_lip"].half(landmarks, 10.0) == "lower"
+    for name in ("eyes", "eyes_cheeks", "nose_upper_lip"):  # across the eye line
+        assert library.regions[name].half(landmarks, 10.0) is None, name
+    forehead = Region("forehead", ((AnchoredPoint("a", "centre", {"Outer left eyebrow": 1.0}, (0.0, 20.0)),
+                                    AnchoredPoint("b", "centre", {"Outer right eyebrow": 1.0}, (0.0, 20.0)),
+                                    AnchoredPoint("c", "centre", {"Inner right eyebrow": 1.0}, (0.0, 50.0))),),
+                      margin_mm=5.0)
+    assert forehead.half(landmarks) == "upper"
+    # a soft edge that reaches the eye line leaves it in neither half
+    assert Region("wide", forehead.polygons, margin_mm=40.0).half(landmarks) is None
+    with pytest.raises(ValueError, match="seam_mm"):
+        forehead.half(landmarks, -1.0)
 
 
 def test_emotions_follow_table_3_3(library):

@@ -4,6 +4,9 @@ from scipy.spatial.transform import Rotation
 
 from tpscore.expression.alignment import (ANCHOR_PARTS, align_rigid, fit_mirror_symmetry, residual_rigid_motion,
                                          rigid_landmark_fit, stable_weight)
+from tpscore.expression.action_units import shipped_library
+from tpscore.expression.modelling import needs_realignment, still_weight
+from tpscore.face.average_face import load_average_face
 from tpscore.face.landmarks import landmark_index
 from tpscore.face.normalise import FrameTransform
 from tpscore.face.regions import region_weight
@@ -155,3 +158,24 @@ def test_stable_weight_refuses_a_part_it_does_not_place():
     grid = _grid(datasets.make_face(datasets.random_identity(5), None, noise_mm=0.0, seed=1))
     with pytest.raises(ValueError, match="parts must name.*'chin'"):
         stable_weight(grid.points, grid.landmarks, ("bridge", "chin"))
+
+
+def test_an_au_of_a_region_within_one_half_is_aligned_on_the_other_half(smiling_pair):
+    # the chin raiser's region lies in the lower face: the upper face is its still part,
+    # as for AUs of the lower half, and its motion has no rigid part left to take out;
+    # a nose wrinkler's region reaches across the eye line: the stable parts, then a
+    # realignment
+    library, reference = shipped_library(), load_average_face().landmarks
+    grid = _grid(smiling_pair[1])
+    upper = region_weight("upper", grid.points, grid.landmarks, 10.0)
+    for spec in ("17", "16", "16+12"):
+        activations = library.parse(spec)
+        np.testing.assert_array_equal(still_weight(grid, activations, library, reference), upper)
+        assert not needs_realignment(activations, library, reference)
+    for spec in ("9", "17+9", "happiness"):
+        activations = library.parse(spec)
+        np.testing.assert_array_equal(still_weight(grid, activations, library, reference),
+                                      stable_weight(grid.points, grid.landmarks))
+        assert needs_realignment(activations, library, reference)
+    # AUs of both halves: no part is still, the whole face is aligned robustly
+    assert still_weight(grid, library.parse("17+1"), library, reference) is None

@@ -63,7 +63,7 @@ class DenseTransfer:
     def model(self, neutral: NormalisedFace, expressive: NormalisedFace,
               activations: Sequence[Activation]) -> ExpressionModel:
         dense = dense_motion(neutral, expressive, self.options.motion, self.options.texture)
-        if needs_realignment(activations):
+        if needs_realignment(activations, self.library, self.reference.landmarks):
             # the alignment knew no part to be still, only the parts that move least
             dense = realigned(dense, neutral)
         if self.uses_mirror(activations):

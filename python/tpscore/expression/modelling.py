@@ -33,7 +33,7 @@ from .texture import TextureOptions, TextureWarning, track_texture
 
 __all__ = ["ControlPointMotion", "ExpressionModel", "PersonMismatchWarning", "PersonMismatchError", "place_control_points", "Extended",
            "align_expressive", "still_weight", "dense_motion", "mirror_plane", "mirrored", "coverage",
-           "registration_grid", "openings", "activation_weight", "needs_realignment", "realigned",
+           "registration_grid", "openings", "activation_weight", "needs_realignment", "half_of", "realigned",
            "SAME_PERSON_MEDIAN_MM"]
 
 
@@ -141,29 +141,48 @@ def activation_weight(activation: Activation, points, landmarks, library: Action
     return library.region(region).weight(mapped, reference_landmarks)
 
 
+#: Width (mm) of the seam between the upper and the lower face where an AU of one half
+#: has the other half aligned as still.
+STILL_SEAM_MM = 10.0
+
+
+def half_of(action_unit: ActionUnit, library: ActionUnitLibrary, reference_landmarks) -> str | None:
+    """The half of the face an AU acts in: its region if that is a half, the half that
+    holds its named region on the reference face (the chin's region lies in the lower
+    face, :meth:`tpscore.face.regions.Region.half`), else None (a region across the eye
+    line, or the whole face)."""
+    region = action_unit.region
+    if region in HALVES:
+        return region
+    if region == WHOLE_FACE:
+        return None
+    return library.region(region).half(reference_landmarks, STILL_SEAM_MM)
+
+
 def still_weight(grid: FaceGrid, activations: Sequence[Activation], library: ActionUnitLibrary,
                  reference_landmarks):
     """Where an expression should leave the expressive scan still, as a weight per grid
     vertex (None: no part can be said to be still, align the whole face robustly):
 
-    - AUs of one half of the face: the other half (a 10 mm seam);
-    - otherwise (AUs of named regions, whose skin pulls on much of the face around
-      them, or a whole expression): the parts no expression moves much
+    - AUs of one half of the face (its named regions included): the other half (a
+      10 mm seam);
+    - otherwise (AUs of regions across the eye line, whose skin pulls on much of the
+      face around them, or a whole expression): the parts no expression moves much
       (:func:`stable_weight`); the motion is then realigned (:func:`realigned`).
     """
-    regions = {act.action_unit.region for act in activations}
-    if regions <= set(HALVES):
-        if len(regions) != 1:
+    halves = {half_of(act.action_unit, library, reference_landmarks) for act in activations}
+    if None not in halves:
+        if len(halves) != 1:
             return None
-        other = "lower" if next(iter(regions)) == "upper" else "upper"
-        return region_weight(other, grid.points, grid.landmarks, 10.0)
+        other = "lower" if halves == {"upper"} else "upper"
+        return region_weight(other, grid.points, grid.landmarks, STILL_SEAM_MM)
     return stable_weight(grid.points, grid.landmarks)
 
 
-def needs_realignment(activations: Sequence[Activation]) -> bool:
+def needs_realignment(activations: Sequence[Activation], library: ActionUnitLibrary, reference_landmarks) -> bool:
     """Whether the alignment relied on the stable parts alone (see :func:`still_weight`),
     so that the registered motion still holds a rigid part to take out."""
-    return not {act.action_unit.region for act in activations} <= set(HALVES)
+    return any(half_of(act.action_unit, library, reference_landmarks) is None for act in activations)
 
 
 def align_expressive(neutral: NormalisedFace, neutral_grid: FaceGrid, expressive_grid: FaceGrid,

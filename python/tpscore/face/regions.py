@@ -168,6 +168,25 @@ class Region:
             best[finite] = np.maximum(best[finite], w)
         return best.reshape(p.shape[:-1])
 
+    def half(self, landmarks, seam_mm: float = 0.0) -> str | None:
+        """The half of the face (``"upper"`` or ``"lower"``, split by the eye line,
+        :func:`region_boundary`) that holds the whole region with its soft edge, and
+        half of a seam ``seam_mm`` wide between the halves, on a face with these
+        landmarks; None if it reaches across (the eyes' region does)."""
+        if not np.isfinite(seam_mm) or seam_mm < 0:
+            raise ValueError(f"seam_mm must be finite and >= 0, got {seam_mm!r}")
+        slope, intercept = region_boundary(landmarks)
+        corners = np.concatenate(self.corners(landmarks))
+        if not np.isfinite(corners).all():
+            return None
+        above = (corners[:, 1] - (slope * corners[:, 0] + intercept)) / np.hypot(1.0, slope)
+        reach = self.margin_mm + 0.5 * seam_mm
+        if (above >= reach).all():
+            return "upper"
+        if (above <= -reach).all():
+            return "lower"
+        return None
+
     def to_dict(self) -> dict:
         return {"name": self.name, "description": self.description, "margin_mm": self.margin_mm,
                 "polygons": [[{"at": dict(c.at), "offset_mm": list(c.offset_mm)} for c in polygon]
