@@ -25,7 +25,7 @@ from .._validation import as_real
 from ..face.landmarks import landmark_map
 from ..face.normalise import NormalisedFace
 from ..face.openings import opening_cut, opening_sides
-from ..face.regions import region_boundary, region_weight, side_weight, smoothstep
+from ..face.regions import height_above_boundary, region_weight, side_weight, smoothstep
 from .action_units import MAX_WEIGHT, WHOLE_FACE
 from .correspondence import adapted_correspondence, landmark_correspondence
 from .cut_motion import CutMotion, opening_pairs
@@ -303,8 +303,7 @@ def _spill(upper_weight: np.ndarray, carried: np.ndarray, fraction: float,
 
 def _below_boundary(points, landmarks) -> np.ndarray:
     """Each point's distance (mm) below the upper/lower boundary (negative above it)."""
-    slope, intercept = region_boundary(landmarks)
-    return -(points[:, 1] - (slope * points[:, 0] + intercept)) / np.hypot(1.0, slope)
+    return -height_above_boundary(points, landmarks)
 
 
 def _covered(model: ExpressionModel, target: NormalisedFace, to_source) -> np.ndarray:

@@ -20,7 +20,7 @@ import numpy as np
 
 from .landmarks import AnchoredPoint, landmark_index
 
-__all__ = ["region_boundary", "upper_face_weight", "region_weight", "midline_x", "side_weight",
+__all__ = ["region_boundary", "height_above_boundary", "upper_face_weight", "region_weight", "midline_x", "side_weight",
            "smoothstep", "Region", "HALVES"]
 
 #: The two halves of the face the eye line separates.
@@ -62,12 +62,18 @@ def region_boundary(landmarks) -> tuple[float, float]:
     return float(slope), float(intercept)
 
 
-def upper_face_weight(points, landmarks, transition_mm: float = 0.0) -> np.ndarray:
-    """Weight in [0, 1] of the upper face at each point (..., 3); NaN points get 0."""
+def height_above_boundary(points, landmarks) -> np.ndarray:
+    """Each point's (..., >=2) signed distance (mm) above the upper/lower boundary
+    (:func:`region_boundary`), measured perpendicular to it in the x-y plane; negative
+    below it, NaN at NaN points."""
     p = np.asarray(points, dtype=np.float64)
     slope, intercept = region_boundary(landmarks)
-    # signed distance above the boundary line, measured perpendicular to it
-    above = (p[..., 1] - (slope * p[..., 0] + intercept)) / np.hypot(1.0, slope)
+    return (p[..., 1] - (slope * p[..., 0] + intercept)) / np.hypot(1.0, slope)
+
+
+def upper_face_weight(points, landmarks, transition_mm: float = 0.0) -> np.ndarray:
+    """Weight in [0, 1] of the upper face at each point (..., 3); NaN points get 0."""
+    above = height_above_boundary(points, landmarks)
     above = np.where(np.isfinite(above), above, -np.inf)
     if transition_mm <= 0:
         return (above > 0).astype(np.float64)
@@ -175,11 +181,10 @@ class Region:
         landmarks; None if it reaches across (the eyes' region does)."""
         if not np.isfinite(seam_mm) or seam_mm < 0:
             raise ValueError(f"seam_mm must be finite and >= 0, got {seam_mm!r}")
-        slope, intercept = region_boundary(landmarks)
         corners = np.concatenate(self.corners(landmarks))
         if not np.isfinite(corners).all():
             return None
-        above = (corners[:, 1] - (slope * corners[:, 0] + intercept)) / np.hypot(1.0, slope)
+        above = height_above_boundary(corners, landmarks)
         reach = self.margin_mm + 0.5 * seam_mm
         if (above >= reach).all():
             return "upper"
