@@ -157,8 +157,13 @@ def test_a_lid_rim_pulls_across_the_eye_but_leaves_its_slide_along_it_free(scans
         moved[name] = correction(rim_from)[:, :2]
     assert np.median(moved["slid"] @ up) > 0.5          # pulled most of the way across
     # the 2 mm slide along the chord does not pull: the same correction as without it
-    # (what slide there is, a fifth of a millimetre, comes from the lid's curved surface)
-    np.testing.assert_allclose(moved["slid"], moved["across"], atol=1e-9)
+    # (what slide there is, a fifth of a millimetre, comes from the lid's curved surface).
+    # Not bit for bit: the two rim targets' across parts differ by rounding, and the
+    # fit's robust cuts (Tukey, off the surface) drop or keep a data pair on either
+    # side of a threshold, so targets 1e-13 mm apart give corrections up to 1e-4 mm
+    # apart (2e-5 mm with NumPy 2.4, 1e-4 with 2.5). A slide that pulled would move
+    # the rim by tenths of a millimetre.
+    np.testing.assert_allclose(moved["slid"], moved["across"], atol=1e-3)
     assert abs(np.median(moved["slid"] @ along)) < 0.3
 
 
